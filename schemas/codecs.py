@@ -1,0 +1,69 @@
+"""Encoding of the binary columns (OpenCV codecs), shared by writer and reader.
+
+- `image`: JPEG of an RGB uint8 (256, 256, 3) array.
+- `lidar_bev`: 4-channel PNG whose RGBA samples are ch0..ch3 in order, uint8 (256, 256, 4).
+- `bev_semantic`: 1-channel PNG of class ids, uint8 (256, 256).
+All decoders return arrays in the documented channel order (RGB, ch0..ch3), not OpenCV's BGR.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+DEFAULT_JPEG_QUALITY = 90
+
+
+def encode_image(rgb: np.ndarray, quality: int = DEFAULT_JPEG_QUALITY) -> bytes:
+    ok, buf = cv2.imencode(
+        ".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)]
+    )
+    if not ok:
+        raise ValueError("JPEG encoding failed")
+    return buf.tobytes()
+
+
+def decode_image(data: bytes) -> np.ndarray:
+    """JPEG bytes -> (H, W, 3) uint8 RGB."""
+    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise ValueError("not a decodable image")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def encode_lidar_bev(bev: np.ndarray) -> bytes:
+    """(H, W, 4) uint8 counts -> PNG with RGBA samples = ch0..ch3."""
+    if bev.dtype != np.uint8 or bev.ndim != 3 or bev.shape[2] != 4:
+        raise ValueError(f"lidar_bev must be (H, W, 4) uint8, got {bev.shape} {bev.dtype}")
+    ok, buf = cv2.imencode(
+        ".png", cv2.cvtColor(bev, cv2.COLOR_RGBA2BGRA), [cv2.IMWRITE_PNG_COMPRESSION, 1]
+    )
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def decode_lidar_bev(data: bytes) -> np.ndarray:
+    """PNG bytes -> (H, W, 4) uint8 with channels ch0..ch3."""
+    bgra = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if bgra is None or bgra.ndim != 3 or bgra.shape[2] != 4:
+        raise ValueError("not a 4-channel PNG")
+    return cv2.cvtColor(bgra, cv2.COLOR_BGRA2RGBA)
+
+
+def encode_bev_semantic(classes: np.ndarray) -> bytes:
+    """(H, W) uint8 class ids -> 1-channel PNG."""
+    if classes.dtype != np.uint8 or classes.ndim != 2:
+        raise ValueError(f"bev_semantic must be (H, W) uint8, got {classes.shape} {classes.dtype}")
+    ok, buf = cv2.imencode(".png", classes, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def decode_bev_semantic(data: bytes) -> np.ndarray:
+    """PNG bytes -> (H, W) uint8 class ids."""
+    classes = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if classes is None or classes.ndim != 2:
+        raise ValueError("not a 1-channel PNG")
+    return classes
