@@ -1,0 +1,196 @@
+"""The rule-based expert: pure functions from what the ego perceives to a target speed and reason.
+
+`world.py` gathers an `ExpertInput` from libsumo each 0.1 s step; `decide` turns it into
+(target speed, reason). Every rule is a speed cap; the lowest cap wins and its name is the
+`expert_reason` (schemas.EXPERT_REASONS). Rules that stop the car for something ahead use the
+same comfortable-braking profile: the speed now from which the car can still reach `v_end`
+within `distance` at the profile's comfortable deceleration b,
+
+    v = sqrt(v_end^2 + 2 b distance)                                   (approach_speed)
+
+so following the target never asks for more than b. Harder braking only ever comes from SUMO's
+own safety checks, which the ego keeps on (speed mode 31, see world.py) to avoid collisions.
+
+Rules:
+    none          cruise at lane limit x profile speed factor
+    speed_limit   slow for a lower limit ahead, or when above the limit now
+    curve         v^2 * curvature <= lateral acceleration, approached at b
+    vehicle       keep the profile's time gap T behind a lead (or a vehicle cutting in): the
+                  Krauss safe speed  v = -bT + sqrt((bT)^2 + v_lead^2 + 2 b (gap - min_gap))
+                  holds gap - min_gap = v T at equal speeds
+    pedestrian    stop `ped_margin` before a pedestrian on or entering the path
+    red_light     stop `stop_line_margin` before the line at red, and at yellow when it can
+                  stop comfortably (v^2 / 2b <= distance); otherwise it goes on through
+    stop_sign     come to a full stop at the stop line until `stop_done` (world.py holds the
+                  stop for `STOP_WAIT_S`), then SUMO's junction model decides when it is clear
+    route_end     stop at the end of a route that cannot be extended
+    junction      (reported by world.py when SUMO's right-of-way model holds the ego back)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from datagen.behaviour import Profile
+
+STOP_LINE_MARGIN_M = 1.0  # the ego's front stops this far before a red light's stop line
+STOP_SIGN_MARGIN_M = 0.5  # ... and this far before a stop sign's line
+STOP_WAIT_S = 1.0  # a full stop at a stop sign lasts at least this long
+STOPPED_MPS = 0.1  # "stopped" (the tests' threshold)
+MIN_CURVATURE_1PM = 1.0 / 300.0  # gentler curves than radius 300 m never limit speed
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    """Something on (or entering) the ego's path ahead.
+
+    Attributes:
+        distance_m: free distance along the path from the ego's front to the obstacle's
+            nearest extent, m (may be <= 0 when touching).
+        speed_mps: its speed along the path, m/s (0 for something crossing).
+        kind: "vehicle" or "pedestrian".
+    """
+
+    distance_m: float
+    speed_mps: float
+    kind: str
+
+
+@dataclass(frozen=True)
+class ExpertInput:
+    """What the expert perceives at one step (distances along the route from the ego's front).
+
+    Attributes:
+        speed_mps: ego speed now.
+        speed_limit_mps: limit of the lane the ego is on.
+        limits_ahead: (distance_m, limit_mps) of lower limits on later lanes of the route.
+        curvature_ahead: (distance_m, curvature_1pm) samples of the path ahead (1/m, >= 0).
+        obstacles: vehicles and pedestrians on or entering the path.
+        light: "none", "red", "yellow" or "green" of the next signal on the route.
+        light_distance_m: distance to its stop line; None without a signal.
+        stop_distance_m: distance to the next stop-controlled entry's line; None without one.
+        stop_done: the ego has completed its full stop at that entry.
+        route_end_m: distance to the end of a route that will not be extended; None otherwise.
+    """
+
+    speed_mps: float
+    speed_limit_mps: float
+    limits_ahead: tuple[tuple[float, float], ...] = ()
+    curvature_ahead: tuple[tuple[float, float], ...] = ()
+    obstacles: tuple[Obstacle, ...] = ()
+    light: str = "none"
+    light_distance_m: float | None = None
+    stop_distance_m: float | None = None
+    stop_done: bool = False
+    route_end_m: float | None = None
+
+
+@dataclass(frozen=True)
+class Decision:
+    """The expert's command: target speed (m/s) and the binding rule (schemas.EXPERT_REASONS)."""
+
+    target_speed_mps: float
+    reason: str
+
+
+def approach_speed(distance_m: float, v_end_mps: float, decel_mps2: float) -> float:
+    """Highest speed now from which `v_end_mps` is reached within `distance_m` at `decel_mps2`."""
+    return math.sqrt(v_end_mps * v_end_mps + 2.0 * decel_mps2 * max(0.0, distance_m))
+
+
+def follow_speed(gap_m: float, lead_speed_mps: float, p: Profile) -> float:
+    """Krauss safe speed keeping the profile's time gap behind a lead `gap_m` ahead."""
+    b, tau = p.ego_comfort_decel_mps2, p.ego_time_gap_s
+    free = max(0.0, gap_m - p.ego_min_gap_m)
+    v_lead = max(0.0, lead_speed_mps)
+    return max(0.0, -b * tau + math.sqrt((b * tau) ** 2 + v_lead * v_lead + 2.0 * b * free))
+
+
+def cruise_rule(inp: ExpertInput, p: Profile) -> float:
+    return inp.speed_limit_mps * p.ego_speed_factor
+
+
+def speed_limit_rule(inp: ExpertInput, p: Profile) -> float:
+    b = p.ego_comfort_decel_mps2
+    caps = [approach_speed(d, lim * p.ego_speed_factor, b) for d, lim in inp.limits_ahead]
+    return min(caps, default=math.inf)
+
+
+def curve_rule(inp: ExpertInput, p: Profile) -> float:
+    b, a_lat = p.ego_comfort_decel_mps2, p.ego_lat_accel_mps2
+    caps = [
+        approach_speed(d, math.sqrt(a_lat / k), b)
+        for d, k in inp.curvature_ahead
+        if k > MIN_CURVATURE_1PM
+    ]
+    return min(caps, default=math.inf)
+
+
+def vehicle_rule(inp: ExpertInput, p: Profile) -> float:
+    caps = [
+        follow_speed(o.distance_m, o.speed_mps, p) for o in inp.obstacles if o.kind != "pedestrian"
+    ]
+    return min(caps, default=math.inf)
+
+
+def pedestrian_rule(inp: ExpertInput, p: Profile) -> float:
+    b = p.ego_comfort_decel_mps2
+    caps = [
+        approach_speed(o.distance_m - p.ego_ped_margin_m, 0.0, b)
+        for o in inp.obstacles
+        if o.kind == "pedestrian"
+    ]
+    return min(caps, default=math.inf)
+
+
+def light_rule(inp: ExpertInput, p: Profile) -> float:
+    if inp.light not in ("red", "yellow") or inp.light_distance_m is None:
+        return math.inf
+    b = p.ego_comfort_decel_mps2
+    room = inp.light_distance_m - STOP_LINE_MARGIN_M
+    v = inp.speed_mps
+    if inp.light == "yellow" and v * v / (2.0 * b) > room + 0.5:
+        return math.inf  # cannot stop comfortably: clear the junction on yellow
+    if inp.light == "red" and v * v / (2.0 * p.emergency_decel_mps2) > inp.light_distance_m:
+        return math.inf  # committed on yellow and past the point of stopping: go on
+    return approach_speed(room, 0.0, b)
+
+
+def stop_sign_rule(inp: ExpertInput, p: Profile) -> float:
+    if inp.stop_distance_m is None or inp.stop_done:
+        return math.inf
+    return approach_speed(inp.stop_distance_m - STOP_SIGN_MARGIN_M, 0.0, p.ego_comfort_decel_mps2)
+
+
+def route_end_rule(inp: ExpertInput, p: Profile) -> float:
+    if inp.route_end_m is None:
+        return math.inf
+    return approach_speed(inp.route_end_m - 2.0, 0.0, p.ego_comfort_decel_mps2)
+
+
+# Order matters only for ties: the first rule with the lowest cap names the reason.
+RULES = (
+    ("red_light", light_rule),
+    ("stop_sign", stop_sign_rule),
+    ("pedestrian", pedestrian_rule),
+    ("vehicle", vehicle_rule),
+    ("curve", curve_rule),
+    ("speed_limit", speed_limit_rule),
+    ("route_end", route_end_rule),
+)
+
+
+def decide(inp: ExpertInput, p: Profile) -> Decision:
+    """Target speed and reason: the minimum over the rules' caps (see module docstring)."""
+    target, reason = cruise_rule(inp, p), "none"
+    if inp.speed_mps > target + 0.5:
+        reason = "speed_limit"  # above the (profile-scaled) limit now: slowing to it
+    for name, rule in RULES:
+        cap = rule(inp, p)
+        if cap < target:
+            target, reason = cap, name
+    # Below walking pace towards a stop point, snap to 0 so the car really stands still.
+    if target < 0.3 and reason in ("red_light", "stop_sign", "pedestrian", "route_end"):
+        target = 0.0
+    return Decision(max(0.0, target), reason)

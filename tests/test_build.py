@@ -1,0 +1,268 @@
+"""`datagen build`: planning, shards, manifest, resume, errors.
+
+The first half drives the build machinery with synthetic episodes (tests/synthetic.py) so that
+planning, resume and determinism are pinned without the simulator's cost; the second half runs
+real SUMO episodes through the `datagen` command."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+import pyarrow as pa
+import pytest
+
+import schemas
+from datagen import build, validate
+from datagen.errors import UserError
+from tests.synthetic import synthetic_table
+
+ROOT = Path(__file__).resolve().parents[1]
+FAKE_TOWNS = (
+    build.Town("alpha", "/nonexistent/alpha.net.xml", "a" * 64, False),
+    build.Town("beta", "/nonexistent/beta.net.xml", "b" * 64, False),
+)
+
+
+# --------------------------------------------------------------------------------------------
+# Synthetic episodes
+
+
+@dataclass
+class FakeResult:
+    table: pa.Table
+    end_reason: str | None
+    stats: dict
+
+
+def fake_runner(spec, sensors, progress):
+    """A deterministic stand-in for run_episode: every fourth seed ends at half its frames."""
+    early = spec.seed % 4 == 0
+    rows = spec.n_frames // 2 if early else spec.n_frames
+    delay = float(os.environ.get("FAKE_FRAME_SECONDS", "0"))
+    for _ in range(rows):
+        time.sleep(delay)
+        if progress:
+            progress(1)
+    table = synthetic_table(rows, spec.episode_id, spec.town, spec.weather, spec.seed % 1000)
+    i = table.schema.get_field_index("behaviour")
+    table = table.set_column(i, table.schema.field(i), pa.array([spec.behaviour] * rows))
+    sha = {t.name: t.network_sha256 for t in FAKE_TOWNS}[spec.town]
+    meta = {**table.schema.metadata, schemas.META_NETWORK_HASH.encode(): sha.encode()}
+    table = table.replace_schema_metadata(meta)
+    return FakeResult(table, "route_end" if early else None, {"collisions": 0, "teleports": 0})
+
+
+def fake_config(frames=96, seed=7, episode_seconds=8.0) -> build.BuildConfig:
+    return build.BuildConfig(
+        towns=FAKE_TOWNS, frames=frames, seed=seed, episode_seconds=episode_seconds, sensors={}
+    )
+
+
+def fake_build(out, workers=2, **kw):
+    return build.build(
+        fake_config(**kw), Path(out), workers=workers, runner=fake_runner, progress_bar=False
+    )
+
+
+def fake_build_main(out: str, workers: str) -> None:
+    """Entry point of the subprocess builds (kill -9, Ctrl-C), exiting as `datagen` does."""
+    try:
+        fake_build(out, int(workers))
+    except KeyboardInterrupt:
+        sys.exit(130)
+
+
+def _content(out: Path) -> dict:
+    """Everything that should be identical between two builds of the same arguments."""
+    manifest = json.loads((out / build.MANIFEST).read_text())
+    manifest.pop("run")
+    files = {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*.parquet"))}
+    return {"manifest": manifest, "files": files}
+
+
+def test_plan_splits_the_budget_across_towns_and_weathers_deterministically():
+    cfg = fake_config(frames=1001, episode_seconds=60.0)  # 120 frames per episode
+    plans = build.plan(cfg, {})
+    assert plans == build.plan(cfg, {})
+    episodes = [e for p in plans.values() for e in p.episodes]
+    assert sum(e.n_frames for e in episodes) == 1001
+    assert max(e.n_frames for e in episodes) <= 120
+    assert len({e.episode_id for e in episodes}) == len(episodes)
+    assert len({e.seed for e in episodes}) == len(episodes)
+    per_cell = {}
+    for e in episodes:
+        per_cell[(e.town, e.weather)] = per_cell.get((e.town, e.weather), 0) + e.n_frames
+        assert e.behaviour in {
+            "sunny": ("normal", "aggressive"),
+            "cloudy": ("normal", "aggressive"),
+        }.get(e.weather, ("cautious",))
+    assert sorted(per_cell.values()) == [125] * 7 + [126]
+    assert [e.episode_id for e in plans["alpha"].episodes[:2]] == ["alpha-7-0000", "alpha-7-0001"]
+    # the same town and index give the same episode whatever the other towns are
+    alone = build.plan(build.BuildConfig(FAKE_TOWNS[:1], 501, 7, 60.0, sensors={}), {})
+    assert alone["alpha"].episodes == plans["alpha"].episodes
+
+
+def test_weather_mix_apportions_frames():
+    cfg = build.BuildConfig(
+        FAKE_TOWNS[:1], 100, 0, 600.0, build.parse_weather_mix("sunny=3,foggy=1"), sensors={}
+    )
+    frames = {}
+    for e in build.plan(cfg, {})["alpha"].episodes:
+        frames[e.weather] = frames.get(e.weather, 0) + e.n_frames
+    assert frames == {"sunny": 75, "foggy": 25}
+    with pytest.raises(UserError, match="unknown weather 'snowy'"):
+        build.parse_weather_mix("snowy=1")
+
+
+def _finish(plan, rows_of):
+    return {e.episode_id: {**e.key(), "rows": rows_of(e)} for e in plan.episodes}
+
+
+def test_episodes_that_end_early_are_topped_up_by_a_further_round():
+    cfg = fake_config(frames=40, episode_seconds=5.0)  # 10 frames per episode, 20 per town
+    quota = build.town_quotas(cfg)["alpha"]
+    first = build.plan_town(cfg, "alpha", quota, {})
+    assert not first.complete and len(first.episodes) == 4
+    done = _finish(first, lambda e: e.n_frames - 3 if e.weather == "rainy" else e.n_frames)
+    second = build.plan_town(cfg, "alpha", quota, done)
+    extra = second.episodes[len(first.episodes) :]
+    assert [(e.weather, e.n_frames, e.round) for e in extra] == [("rainy", 3, 1)]
+    assert extra[0].episode_id == "alpha-7-0004"
+    done.update({e.episode_id: {**e.key(), "rows": e.n_frames} for e in extra})
+    third = build.plan_town(cfg, "alpha", quota, done)
+    assert third.complete and third.episodes == second.episodes and not third.shortfall
+
+
+def test_a_weather_whose_round_delivers_nothing_is_given_up():
+    cfg = fake_config(frames=40, episode_seconds=5.0)
+    quota = build.town_quotas(cfg)["alpha"]
+    p = build.plan_town(cfg, "alpha", quota, {})
+    done = _finish(p, lambda e: 0 if e.weather == "foggy" else e.n_frames)
+    p = build.plan_town(cfg, "alpha", quota, done)
+    assert p.complete and p.shortfall == {"foggy": 5}
+
+
+def test_synthetic_build_is_readable_and_matches_its_manifest(tmp_path):
+    report = fake_build(tmp_path)
+    m = report.manifest
+    assert m["status"] == "complete"
+    df = pd.read_parquet(tmp_path, columns=["episode_id", "frame", "town", "weather"])
+    assert len(df) == 96 == m["statistics"]["frames"]
+    assert not df.duplicated(["episode_id", "frame"]).any()
+    counts = df.groupby(["town", "weather"]).size()
+    assert {f"{t}/{w}": n for (t, w), n in counts.items()} == m["statistics"][
+        "frames_by_town_weather"
+    ]
+    early = [e for e in m["episodes"] if e["rows"] < e["n_frames"]]
+    assert early and all(e["end_reason"] == "route_end" for e in early)
+    assert any(e["round"] > 0 for e in m["episodes"])  # the early ones were topped up
+    assert m["statistics"]["episodes_ended_early"] == {"route_end": len(early)}
+    reports, problems, rows = validate.validate_dir(tmp_path, workers=1)
+    assert problems == [] and all(not r.problems for r in reports) and rows == 96
+    assert "route_end" in build.summary(report)
+
+
+def test_dataset_does_not_depend_on_worker_count(tmp_path):
+    fake_build(tmp_path / "one", workers=1)
+    fake_build(tmp_path / "two", workers=2)
+    assert _content(tmp_path / "one") == _content(tmp_path / "two")
+
+
+def test_rerun_keeps_finished_episodes_and_adopts_unrecorded_shards(tmp_path):
+    fake_build(tmp_path / "ref")
+    out = tmp_path / "out"
+    fake_build(out)
+    manifest = json.loads((out / build.MANIFEST).read_text())
+    # As if killed: one shard renamed but not yet recorded, one not written at all, one
+    # temporary left, the manifest still "building".
+    recorded = [e for e in manifest["episodes"] if e["rows"]]
+    recorded[0]["status"] = "pending"
+    (out / recorded[1]["file"]).unlink()
+    (out / "alpha" / "_alpha-7-0009.parquet.99.tmp").write_bytes(b"half")
+    manifest["status"] = "building"
+    (out / build.MANIFEST).write_text(json.dumps(manifest))
+    report = fake_build(out)
+    assert report.new_frames == recorded[1]["rows"]  # only the missing episode was redone
+    assert _content(out) == _content(tmp_path / "ref")
+
+
+def test_different_arguments_are_refused_unless_forced(tmp_path):
+    fake_build(tmp_path)
+    with pytest.raises(UserError, match=r"different arguments \(frames: 96 != 48\).*--force"):
+        fake_build(tmp_path, frames=48)
+    fake_build_forced = build.build(
+        fake_config(frames=48),
+        tmp_path,
+        workers=1,
+        runner=fake_runner,
+        force=True,
+        progress_bar=False,
+    )
+    assert fake_build_forced.manifest["statistics"]["frames"] == 48
+    assert len(pd.read_parquet(tmp_path, columns=["frame"])) == 48
+
+
+def test_foreign_parquet_files_are_never_touched(tmp_path):
+    pd.DataFrame({"a": [1]}).to_parquet(tmp_path / "mine.parquet")
+    with pytest.raises(UserError, match="not iidsu shards"):
+        build.build(fake_config(), tmp_path, runner=fake_runner, force=True, progress_bar=False)
+    assert (tmp_path / "mine.parquet").exists()
+
+
+def _spawn_fake_build(out: Path, env_extra: dict) -> subprocess.Popen:
+    code = (
+        "import sys; from tests.test_build import fake_build_main; fake_build_main(*sys.argv[1:])"
+    )
+    env = {**os.environ, **env_extra}
+    return subprocess.Popen(
+        [sys.executable, "-c", code, str(out), "2"],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        start_new_session=True,  # so that the test can signal the whole build
+    )
+
+
+def _wait_for_shards(out: Path, n: int, proc: subprocess.Popen, timeout_s: float = 60) -> None:
+    deadline = time.monotonic() + timeout_s
+    while len(list(out.glob("*/*.parquet"))) < n:
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < deadline, "build made no progress"
+        time.sleep(0.05)
+
+
+def test_sigkill_then_rerun_equals_an_uninterrupted_build(tmp_path):
+    fake_build(tmp_path / "ref")
+    out = tmp_path / "out"
+    proc = _spawn_fake_build(out, {"FAKE_FRAME_SECONDS": "0.02"})
+    _wait_for_shards(out, 3, proc)
+    os.killpg(proc.pid, signal.SIGKILL)  # the build and its workers, mid-episode
+    proc.wait()
+    partial = len(list(out.glob("*/*.parquet")))
+    assert 3 <= partial < len(list((tmp_path / "ref").glob("*/*.parquet")))
+    report = fake_build(out)
+    assert 0 < report.new_frames < 96
+    assert _content(out) == _content(tmp_path / "ref")
+
+
+def test_ctrl_c_stops_cleanly_and_the_rerun_finishes(tmp_path):
+    out = tmp_path / "out"
+    proc = _spawn_fake_build(out, {"FAKE_FRAME_SECONDS": "0.02"})
+    _wait_for_shards(out, 2, proc)
+    os.killpg(proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does
+    _, stderr = proc.communicate(timeout=30)
+    assert proc.returncode == 130
+    assert "run the same command again to resume" in stderr.decode()
+    assert "Traceback" not in stderr.decode()
+    assert list(out.rglob("_*.tmp")) == []
+    fake_build(out)
+    fake_build(tmp_path / "ref")
+    assert _content(out) == _content(tmp_path / "ref")

@@ -1,0 +1,145 @@
+"""Model and training configuration: two frozen dataclasses, two named presets.
+
+`paper` is the model of the II-DSU paper (Sec. III); `tiny` is the same architecture shrunk so
+that a training step runs in a fraction of a second on a laptop CPU (tests, `make demo`). The CLI
+starts from a preset and overrides fields with `dataclasses.replace`; checkpoints store both
+configs (`to_dict`) so `--resume`, `eval`, `analyze` and `show` rebuild the same model.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+HEADS = ("planning", "detection", "bev", "traffic", "weather")
+"""Every head of the model, planning first; the four auxiliary ones can be switched off."""
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Architecture of II-DSU (paper Sec. III-B). Defaults are the paper's model."""
+
+    # Encoders: ConvNeXt-Tiny's depths with the paper's widths, down-sampling /4, /2, /2, /2.
+    depths: tuple[int, ...] = (3, 3, 9, 3)
+    dims: tuple[int, ...] = (64, 128, 256, 512)
+    drop_path: float = 0.1  # stochastic depth at the last block (ConvNeXt-T's ImageNet value)
+    layer_scale_init: float = 1e-6  # ConvNeXt's layer scale initial value
+    input_px: int = 256  # camera crop and LiDAR BEV side (Sec. III-A); a multiple of 32
+    # TransFuser fusion (Prakash et al. 2021): both maps pooled to an 8x8 token grid, 8
+    # attention blocks with 4 heads per fusion layer, as in TransFuser's GPT.
+    fusion_tokens: int = 8  # token grid side per modality (the final 256/32 = 8 map, unpooled)
+    fusion_blocks: int = 8
+    fusion_heads: int = 4
+    feature_dim: int = 1024  # channels of F_DSU, the 8x8 scene feature (Sec. III-A)
+    # Heads (Sec. III-B).
+    planner_hidden: int = 128  # GRU state; the 3-layer MLP reduces F_DSU's 1024-d to this
+    n_waypoints: int = 4  # T_future; the shards hold +0.5 .. +2.0 s
+    output_px: int = 256  # R, side of the dense heads' maps; 256 / 2**k with k >= 0
+    decoder_width: int = 256  # channels after the first up-sampling step; halved per step
+    lidar_clip_count: float = 5.0  # LiDAR counts are clipped here and scaled to [0, 1]
+    # (TransFuser's hist_max_per_pixel)
+    # Ablation switches (the paper's Table III rows).
+    detection: bool = True
+    bev: bool = True
+    traffic: bool = True
+    weather: bool = True
+    single_frame_lidar: bool = False  # LiDAR input ch0 + ch1 only (see training/model.py)
+
+    def __post_init__(self):
+        if len(self.depths) != 4 or len(self.dims) != 4:
+            raise ValueError("depths and dims need four stages each")
+        if self.input_px % 32:
+            raise ValueError(f"input_px must be a multiple of 32, got {self.input_px}")
+        side = self.input_px // 32
+        up = self.output_px / side  # the dense decoders up-sample F_DSU by this factor
+        if up < 1 or up != 2 ** round(math.log2(up)):
+            raise ValueError(
+                f"output_px must be {side} times a power of two (the F_DSU map is {side}x{side}),"
+                f" got {self.output_px}"
+            )
+
+    @property
+    def heads(self) -> tuple[str, ...]:
+        """The heads this model has: planning and every auxiliary head not switched off."""
+        on = {"detection": self.detection, "bev": self.bev, "traffic": self.traffic}
+        on["weather"] = self.weather
+        return ("planning",) + tuple(h for h in HEADS[1:] if on[h])
+
+    @property
+    def lidar_channels(self) -> tuple[int, ...]:
+        """LiDAR BEV channels fed to the encoder (indices into the shard's ch0..ch3)."""
+        return (0, 1) if self.single_frame_lidar else (0, 1, 2, 3)
+
+    @property
+    def feature_px(self) -> int:
+        """Side of F_DSU and of the last encoder stage: input_px / 32."""
+        return self.input_px // 32
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ModelConfig:
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation, data and loss weights (paper Sec. III-C). Defaults suit the paper model."""
+
+    shards: str = "data"
+    out: str = "runs/iidsu"
+    epochs: int = 30
+    batch_size: int = 32
+    lr: float = 1e-4  # AdamW peak learning rate (TransFuser's)
+    min_lr_frac: float = 0.01  # the cosine decays to lr * min_lr_frac
+    warmup_frac: float = 0.02  # share of all steps spent in linear warm-up
+    weight_decay: float = 0.01  # on weights of dimension >= 2 only (not norms, biases)
+    grad_clip: float = 1.0
+    num_workers: int = 4  # DataLoader processes decoding JPEG/PNG per training process
+    shuffle_buffer: int = 512  # encoded frames held per worker for shuffling (~50 kB each)
+    val_fraction: float = 0.1  # share of episodes held out, unless val_towns is given
+    val_towns: tuple[str, ...] = ()  # hold out these towns' episodes instead
+    seed: int = 0
+    compile: bool = False  # torch.compile the model (worth it on a GPU, slow to start)
+    # Loss weights: L = l_wp L_wp + l_O (alpha L_heat + beta L_reg) + l_M L_M
+    #                   + l_tf (gamma L_light + delta L_sign) + l_wc L_wc   (Sec. III-C).
+    # Planning dominates (the paper's wish); the rest only gives F_DSU prior knowledge.
+    lambda_wp: float = 1.0
+    lambda_o: float = 0.2
+    lambda_m: float = 0.2
+    lambda_tf: float = 0.1
+    lambda_wc: float = 0.1
+    alpha: float = 1.0
+    beta: float = 1.0
+    gamma: float = 1.0
+    delta: float = 1.0
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrainConfig:
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+
+
+PRESETS: dict[str, tuple[ModelConfig, TrainConfig]] = {
+    "paper": (ModelConfig(), TrainConfig()),
+    # The same model shrunk for CPUs: one block per stage, widths / 4, F_DSU 8x8x128, one
+    # attention block per fusion layer, 64x64 dense maps (0.5 m per pixel).
+    "tiny": (
+        ModelConfig(
+            depths=(1, 1, 1, 1),
+            dims=(16, 32, 64, 128),
+            drop_path=0.0,
+            fusion_blocks=1,
+            fusion_heads=2,
+            feature_dim=128,
+            planner_hidden=64,
+            output_px=64,
+            decoder_width=32,
+        ),
+        TrainConfig(batch_size=8, lr=1e-3, warmup_frac=0.05, num_workers=1, shuffle_buffer=64),
+    ),
+}
