@@ -50,7 +50,8 @@ class Profile:
         ego_lat_accel_mps2: lateral acceleration allowed in curves, m/s^2.
         ego_ped_margin_m: distance kept to a pedestrian on the path, m.
     Attributes (scene):
-        traffic_density: background vehicles per lane-km around the ego.
+        traffic_density: background vehicles per car-lane-km around the ego (tuned so that
+            queues form at signals but jams that block the ego for minutes stay rare).
         pedestrian_density: pedestrians per sidewalk-km around the ego.
     """
 
@@ -103,7 +104,7 @@ PROFILES: dict[str, Profile] = {
         ego_accel_mps2=2.0,
         ego_lat_accel_mps2=2.5,
         ego_ped_margin_m=4.0,
-        traffic_density=4.0,
+        traffic_density=7.0,
         pedestrian_density=4.0,
     ),
     "aggressive": Profile(
@@ -127,7 +128,7 @@ PROFILES: dict[str, Profile] = {
         ego_accel_mps2=2.8,
         ego_lat_accel_mps2=3.2,
         ego_ped_margin_m=3.0,
-        traffic_density=5.0,
+        traffic_density=8.5,
         pedestrian_density=4.0,
     ),
     "cautious": Profile(
@@ -151,7 +152,7 @@ PROFILES: dict[str, Profile] = {
         ego_accel_mps2=1.5,
         ego_lat_accel_mps2=1.8,
         ego_ped_margin_m=5.0,
-        traffic_density=3.5,
+        traffic_density=6.0,
         pedestrian_density=2.5,  # fewer people walk in rain and fog
     ),
 }

@@ -63,6 +63,14 @@ shortfall."""
 MAX_TASKS_PER_WORKER = 50
 """Episodes a worker process runs before it is replaced: bounds slow leaks (libsumo, Embree)
 without paying a process start (imports, scene caches) for every episode."""
+SUMMARY_COUNTS = (
+    "collisions",  # the ego's (world.py counts SUMO's collision checks, junctions included)
+    "other_collisions",
+    "red_light_violations",
+    "teleports",
+    "hard_brakes",
+    "reroutes",
+)
 MANIFEST = "_manifest.json"
 MANIFEST_FORMAT = "iidsu-build-manifest/1"
 META_EPISODE_JSON = "iidsu.episode_json"
@@ -358,12 +366,12 @@ def run_task(
 
 
 def _deterministic(stats: dict) -> dict:
-    """Stats without wall-clock timings, so that the manifest of a resumed build equals that of
-    an uninterrupted one."""
+    """Stats without wall-clock timings (`wall_s`, `timing...`), so that the manifest of a
+    resumed build equals that of an uninterrupted one."""
     return {
         k: v
         for k, v in stats.items()
-        if not (k.startswith("tim") or k.endswith("_s") and "time" in k or k.startswith("wall"))
+        if not (k.startswith(("wall", "tim")) or k.endswith("wall_s"))
     }
 
 
@@ -689,8 +697,8 @@ def statistics(episodes: list[dict], plans: dict[str, TownPlan]) -> dict:
         if r["rows"] < r["n_frames"]:
             ended[r.get("end_reason") or "unknown"] += 1
         for k, v in (r.get("stats") or {}).items():
-            if isinstance(v, int | float) and not isinstance(v, bool):
-                totals[k] += v
+            if isinstance(v, int) and not isinstance(v, bool) and not k.startswith("n_"):
+                totals[k] += v  # counts (collisions, teleports, ...); means do not add up
     return {
         "frames": sum(r["rows"] for r in finished),
         "episodes": len(finished),
@@ -847,9 +855,10 @@ def summary(report: BuildReport) -> str:
     behaviours = ", ".join(f"{b} {n}" for b, n in sorted(s["frames_by_behaviour"].items()))
     lines.append(f"frames by behaviour: {behaviours or '-'}")
     totals = s["stats_totals"]
+    shown = [k for k in SUMMARY_COUNTS if k in totals] or ["collisions"]
     lines.append(
-        f"episodes: {s['episodes']}; collisions: {totals.get('collisions', 0)}"
-        + "".join(f"; {k}: {v}" for k, v in sorted(totals.items()) if k != "collisions")
+        f"episodes: {s['episodes']}; "
+        + "; ".join(f"{k.replace('_', ' ')}: {totals.get(k, 0)}" for k in shown)
     )
     ended = ", ".join(f"{r} {n}" for r, n in sorted(s["episodes_ended_early"].items()))
     lines.append(f"episodes ended early: {ended or 'none'}")

@@ -22,7 +22,8 @@ Rules:
     red_light     stop `stop_line_margin` before the line at red, and at yellow when it can
                   stop comfortably (v^2 / 2b <= distance); otherwise it goes on through
     stop_sign     come to a full stop at the stop line until `stop_done` (world.py holds the
-                  stop for `STOP_WAIT_S`), then SUMO's junction model decides when it is clear
+                  stop for `STOP_WAIT_S` and until no other vehicle is inside the junction), then
+                  SUMO's right-of-way model decides when to enter
     route_end     stop at the end of a route that cannot be extended
     junction      (reported by world.py when SUMO's right-of-way model holds the ego back)
 """

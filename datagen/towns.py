@@ -219,7 +219,8 @@ def _roundabouts(n: int, radius_m: float) -> Callable:
 
 
 def _narrow(width_m: float) -> Callable:
-    """Edit: narrow lanes and a random speed per road (rural/suburban streets)."""
+    """Edit: narrow lanes and a random speed per road (rural/suburban streets). Narrower than
+    3 m with acute random angles, SUMO's junction geometry lets turning vehicles touch."""
 
     def edit(nodes: ET.Element, edges: ET.Element, rng: np.random.Generator) -> None:
         for e in sorted(edges.iter("edge"), key=lambda e: e.get("id")):
@@ -307,7 +308,7 @@ RECIPES: dict[str, Recipe] = {
                 "--rand.max-distance",
                 "150",
                 "--rand.min-angle",
-                "50",
+                "60",
                 "--rand.connectivity",
                 "0.9",
                 "--random-lanenumber",
@@ -351,7 +352,7 @@ RECIPES: dict[str, Recipe] = {
                 "--rand.max-distance",
                 "260",
                 "--rand.min-angle",
-                "40",
+                "60",
                 "--rand.neighbor-dist1",
                 "2",
                 "--rand.neighbor-dist2",
@@ -367,7 +368,7 @@ RECIPES: dict[str, Recipe] = {
             ),
             seed=16,
             control=(0.25, 0.25, 0.35),
-            edit=_narrow(2.8),
+            edit=_narrow(3.0),
         ),
         Recipe(
             "roundabout",
@@ -453,13 +454,21 @@ def _run(cmd: list[str], cwd: Path) -> None:
 
 
 def _recipe_key(recipe: Recipe) -> str:
+    """Hash of everything that shapes the town: the recipe, the builder code, SUMO's version."""
     import inspect
 
-    src = inspect.getsource(inspect.getmodule(_recipe_key))  # this module's text
-    h = hashlib.sha256(
-        f"{RECIPE_VERSION}|{_sumo_version()}|{recipe.name}|{src}".encode()
-    ).hexdigest()
-    return h[:10]
+    builders = (_node_xy, _arterials, _roundabouts, _narrow, _mixed, _assign_control, build_town)
+    parts = [
+        str(RECIPE_VERSION),
+        _sumo_version(),
+        repr((recipe.name, recipe.netgenerate, recipe.seed, recipe.control, recipe.netconvert)),
+        repr(COMMON_NETCONVERT),
+        *(inspect.getsource(f) for f in builders),
+    ]
+    if recipe.edit is not None:
+        cells = recipe.edit.__closure__ or ()
+        parts.append(repr([c.cell_contents for c in cells if not callable(c.cell_contents)]))
+    return hashlib.sha256("|".join(parts).encode()).hexdigest()[:10]
 
 
 def _assign_control(nodes: ET.Element, edges: ET.Element, recipe: Recipe) -> None:
@@ -597,10 +606,15 @@ def town_net_path(name: str, cache_dir: Path | None = None) -> Path:
 # --- any network ---------------------------------------------------------------------------
 
 
-def _head(path: Path, n: int = 1 << 16) -> bytes:
+def _opener(path: Path) -> Callable:
+    """gzip.open for gzipped files (by magic number, whatever the name), else open."""
     with open(path, "rb") as f:
         magic = f.read(2)
-    opener = gzip.open if magic == b"\x1f\x8b" else open
+    return gzip.open if magic == b"\x1f\x8b" else open
+
+
+def _head(path: Path, n: int = 1 << 16) -> bytes:
+    opener = _opener(path)
     try:
         with opener(path, "rb") as f:
             return f.read(n)
@@ -653,8 +667,7 @@ class NetworkStats:
 def network_stats(path: Path) -> NetworkStats:
     """Junction counts (signalised / stop-controlled / other real junctions), lane-km of
     vehicle lanes and km of sidewalk, from the network file."""
-    opener = gzip.open if _head(path, 2)[:2] == b"\x1f\x8b" else open
-    with opener(path, "rb") as f:
+    with _opener(path)(path, "rb") as f:
         root = ET.parse(f).getroot()
     lights = stops = other = crossings = 0
     lane_m = sidewalk_m = 0.0

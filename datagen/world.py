@@ -9,13 +9,14 @@ expert-driven ego car. This is the only module that talks to libsumo.
 How the ego is driven. Each 0.1 s step `World` reads the ego's surroundings from libsumo
 (subscriptions, a context subscription of everything within AGENT_RADIUS_M, the ego's next links
 and signals), builds an `expert.ExpertInput` and sets the expert's target speed with
-`vehicle.setSpeed`. The ego keeps SUMO's default speed mode 31: SUMO still caps the commanded
-speed by its safe speed behind the leader (bit 0), the vType's acceleration and comfortable
-deceleration (bits 1, 2; the ego's vType decel is the profile's comfortable deceleration, so the
-expert's commands never brake harder), right of way at junctions including pedestrians on
-crossings (bit 3) and hard braking before a red light (bit 4). Only those safety checks may brake
-harder (up to emergencyDecel), i.e. only to avoid a collision. When SUMO holds the ego below the
-expert's target the step's reason is attributed to what SUMO yields to (`junction`, `stop_sign`,
+`vehicle.setSpeed`. The ego keeps SUMO's default speed mode 31, so SUMO remains the safety net
+under the expert: it still caps the commanded speed by its safe speed behind the leader (bit 0),
+by the vType's acceleration and deceleration (bits 1, 2), by right of way at junctions, pedestrians
+on crossings included (bit 3), and brakes hard rather than pass a red light (bit 4). The ego
+vType's decel, the cap on commanded braking, is EGO_DECEL_SLACK x the comfortable deceleration
+the expert plans with; only SUMO's safety checks brake harder (up to emergencyDecel), i.e. only
+to avoid a collision (counted in `stats["hard_brakes"]`). When SUMO holds the ego below the
+expert's target, the step's reason names what it yields to (`junction`, `stop_sign`,
 `pedestrian`, `vehicle`). Lane choice and lane changes stay with SUMO's lane-change model.
 
 Traffic lives in a bubble around the ego: background vehicles (random routes, the profile's vType
@@ -31,6 +32,7 @@ east in radians.
 
 from __future__ import annotations
 
+import logging
 import math
 import re
 import shutil
@@ -47,6 +49,7 @@ from datagen import expert
 from datagen.behaviour import PROFILES, Profile, vtype_attributes
 from datagen.errors import UserError
 from datagen.state import AgentState, FrameState, Pose
+from schemas import WEATHERS
 
 AGENT_RADIUS_M = 100.0  # agents within this distance of the ego are in FrameState.agents
 SIGNAL_RANGE_M = 30.0  # FrameState.traffic_light / stop_sign look this far along the route
@@ -65,6 +68,10 @@ PED_SPAWN_M = (40.0, 200.0)
 PED_REMOVE_M = 260.0
 
 EGO_ID = "ego"
+# The ego vType's decel (the cap on commanded braking) is this much above the comfortable
+# deceleration the expert plans with: room to track the planned profile at a 0.1 s step without
+# overshooting stop points (measured: at exactly b a red-light stop ends ~0.7 m further).
+EGO_DECEL_SLACK = 1.2
 # Background vehicle types: (id, vClass, length, width, height, share, box class).
 VEHICLE_TYPES = (
     ("car", "passenger", 4.5, 1.8, 1.5, 0.58, "vehicle"),
@@ -80,6 +87,7 @@ PED_DIMS_M = (0.4, 0.5, 1.75)
 _LIGHT = {"r": "red", "u": "red", "y": "yellow", "Y": "yellow", "G": "green", "g": "green"}
 _COMMAND = {"s": "straight", "l": "left", "L": "left", "t": "left", "r": "right", "R": "right"}
 
+_log = logging.getLogger(__name__)
 _open_world: World | None = None  # libsumo runs one simulation per process
 
 
@@ -188,10 +196,15 @@ class World:
         global _open_world
         if _open_world is not None:
             raise RuntimeError("libsumo runs one simulation per process: close the other World")
+        if config.weather not in WEATHERS:
+            raise UserError(f"unknown weather {config.weather!r}; expected one of {WEATHERS}")
         if config.behaviour not in PROFILES:
             raise UserError(
                 f"unknown behaviour {config.behaviour!r}; expected one of {tuple(PROFILES)}"
             )
+        from datagen.towns import check_network
+
+        check_network(config.net_path)  # a clear UserError before SUMO sees a bad file
         self.config = config
         self.profile: Profile = PROFILES[config.behaviour]
         self.ended: str | None = None
@@ -205,6 +218,8 @@ class World:
         self._chains: dict[str, list[str]] = {}
         self._kerb: dict[str, bool] = {}
         self._colliding: set[tuple[str, str]] = set()
+        self._route_end_m: float | None = None
+        self._stop_junction: str | None = None
         self._veh_dims: dict[str, tuple[float, float, float, str]] = {}
         self._n_spawned = 0
         self._reason = "none"
@@ -217,8 +232,6 @@ class World:
         self._context: dict = {}
         self._links: tuple = ()
         self._path: tuple[np.ndarray, np.ndarray] | None = None
-        self._pre_link_state = ""
-        self._pre_lane = ""
         try:
             import libsumo
 
@@ -274,15 +287,16 @@ class World:
             attrib={
                 # The expert sets the speed; SUMO's own model is only the safety net, so the
                 # vType asks for nothing the expert would not: no dawdling, a short own headway
-                # (below every profile's time gap), comfortable deceleration as the limit for
-                # commanded braking, emergency braking only through the safety checks.
+                # (below every profile's time gap), decel a little above the comfortable one as
+                # the limit for commanded braking, emergency braking only through the safety
+                # checks, no impatience at junctions.
                 "minGap": "1.0",
                 "tau": "0.5",
                 "sigma": "0",
                 "speedFactor": "1.25",
                 "speedDev": "0",
                 "accel": f"{p.ego_accel_mps2:g}",
-                "decel": f"{p.ego_comfort_decel_mps2:g}",
+                "decel": f"{EGO_DECEL_SLACK * p.ego_comfort_decel_mps2:g}",
                 "emergencyDecel": f"{p.emergency_decel_mps2:g}",
                 "impatience": "0",
                 "jmIgnoreFoeProb": "0",
@@ -344,7 +358,7 @@ class World:
 
     def _setup_network(self) -> None:
         ls = self._ls
-        drive, walk = [], []
+        drive, walk, car_lanes = [], [], {}
         for e in ls.edge.getIDList():
             if e.startswith(":"):
                 continue
@@ -352,11 +366,13 @@ class World:
             allowed = [ls.lane.getAllowed(f"{e}_{k}") for k in range(n)]
             if any("passenger" in a for a in allowed):
                 drive.append(e)
+                car_lanes[e] = sum("passenger" in a for a in allowed)
             if any("pedestrian" in a and "passenger" not in a for a in allowed):
                 walk.append(e)
         if not drive:
             raise UserError(f"{self.config.net_path}: no lane allows passenger cars")
         self._drive_edges = sorted(drive)
+        self._drive_lanes = np.array([car_lanes[e] for e in self._drive_edges])
         self._walk_edges = sorted(walk)
 
         def mid_len(e: str) -> tuple[float, float, float]:
@@ -370,8 +386,6 @@ class World:
         self._drive_xy, self._drive_len = d[:, :2], d[:, 2]
         w = np.array([mid_len(e) for e in self._walk_edges]).reshape(-1, 3)
         self._walk_xy, self._walk_len = w[:, :2], w[:, 2]
-        # sidewalk lane per walk edge (spawn position)
-        self._ego_routable = None
 
     def _edges_near(self, xy: np.ndarray, lens: np.ndarray, centre, r0: float, r1: float):
         if len(xy) == 0:
@@ -380,18 +394,14 @@ class World:
         return np.flatnonzero((dist >= r0) & (dist <= r1) & (lens > 5.0))
 
     def _lane_km_near(self, centre, radius: float) -> tuple[float, float]:
-        ls = self._ls
+        """(car lane-km, sidewalk-km) of edges whose middle lies within `radius` of centre."""
         idx = self._edges_near(self._drive_xy, self._drive_len, centre, 0.0, radius)
-        lane_km = (
-            sum(self._drive_len[i] * ls.edge.getLaneNumber(self._drive_edges[i]) for i in idx)
-            / 1000.0
-        )
+        lane_km = float((self._drive_len[idx] * self._drive_lanes[idx]).sum()) / 1000.0
         idx = self._edges_near(self._walk_xy, self._walk_len, centre, 0.0, radius)
         walk_km = float(self._walk_len[idx].sum()) / 1000.0
         return lane_km, walk_km
 
     def _pick_ego_route(self) -> list[str]:
-        ls = self._ls
         n = len(self._drive_edges)
         cand = np.flatnonzero(self._drive_len >= 30.0)
         if len(cand) == 0:
@@ -404,11 +414,11 @@ class World:
             b = int(far[self._rng.integers(len(far))]) if len(far) else int(self._rng.integers(n))
             if a == b:
                 continue
-            r = ls.simulation.findRoute(self._drive_edges[a], self._drive_edges[b], "ego_type")
-            if len(r.edges) >= 3:
-                return list(r.edges)
-            if len(r.edges) > len(best):
-                best = list(r.edges)
+            r = self._find_route(self._drive_edges[a], self._drive_edges[b], "ego_type")
+            if len(r) >= 3:
+                return list(r)
+            if len(r) > len(best):
+                best = list(r)
         if best:
             return best
         raise UserError(f"{self.config.net_path}: found no route for a passenger car")
@@ -433,6 +443,13 @@ class World:
         for _ in range(int(round(self.config.warmup_s / self.config.step_s))):
             self._ls.simulationStep()
 
+    def _find_route(self, a: str, b: str, vtype: str) -> tuple[str, ...]:
+        """Edges of the fastest route from a to b for vtype; () if there is none."""
+        try:
+            return tuple(self._ls.simulation.findRoute(a, b, vtype).edges)
+        except self._ls.TraCIException:  # e.g. the vClass may not use edge a
+            return ()
+
     def _edge_mid(self, edge: str) -> np.ndarray:
         i = self._drive_edges.index(edge)
         return self._drive_xy[i]
@@ -451,12 +468,12 @@ class World:
                 b = int(self._rng.integers(len(self._drive_edges)))
                 if a == b:
                     continue
-                r = ls.simulation.findRoute(self._drive_edges[a], self._drive_edges[b], vt[0])
-                if len(r.edges) < 2:
+                r = self._find_route(self._drive_edges[a], self._drive_edges[b], vt[0])
+                if len(r) < 2:
                     continue
                 vid = f"v{self._n_spawned}"
                 self._n_spawned += 1
-                ls.route.add(f"r_{vid}", r.edges)
+                ls.route.add(f"r_{vid}", r)
                 ls.vehicle.add(
                     vid,
                     f"r_{vid}",
@@ -483,7 +500,10 @@ class World:
                     continue
                 b = int(dest[self._rng.integers(len(dest))])
                 ea, eb = self._walk_edges[a], self._walk_edges[b]
-                stages = ls.simulation.findIntermodalRoute(ea, eb, pType="ped")
+                try:
+                    stages = ls.simulation.findIntermodalRoute(ea, eb, pType="ped")
+                except ls.TraCIException:
+                    stages = ()
                 if not stages:
                     continue
                 pid = f"p{self._n_spawned}"
@@ -529,12 +549,14 @@ class World:
                 v.VAR_LANE_ID,
                 v.VAR_LANEPOSITION,
                 v.VAR_ROAD_ID,
+                v.VAR_ROUTE_INDEX,
             ],
         )
         vars_ = [v.VAR_POSITION, v.VAR_ANGLE, v.VAR_SPEED, v.VAR_TYPE, v.VAR_LANE_ID]
         ls.vehicle.subscribeContext(EGO_ID, v.CMD_GET_VEHICLE_VARIABLE, AGENT_RADIUS_M, vars_)
         ls.vehicle.subscribeContext(EGO_ID, v.CMD_GET_PERSON_VARIABLE, AGENT_RADIUS_M, vars_)
         ls.simulationStep()
+        self._set_route(ls.vehicle.getRoute(EGO_ID))
         self._read()
         self._sense()
         self._t0_wall = time.perf_counter()
@@ -654,9 +676,12 @@ class World:
             if light == "none":
                 light_d = None
         stop_d = None
+        self._stop_junction = None
         for link, d in zip(self._links, self._link_dist):
             if link[5] in ("s", "w"):
                 stop_d = float(d)
+                if link[4]:  # internal lane ":<junction>_<index>_<lane>"
+                    self._stop_junction = link[4][1:].rsplit("_", 2)[0]
                 break
             if link[5] not in ("M", "m", "=", "O", "o"):  # a signal first: it governs
                 break
@@ -690,13 +715,19 @@ class World:
             # road), not where they stand: someone waiting at the kerb is not on the path, and
             # yielding to them would deadlock with SUMO, where they wait for the car.
             kerb_a = np.asarray(kerb)
+            in_junction = self._ego_cache[ls.VAR_LANE_ID].startswith(":")
             near = np.hypot(*(xy_a - pts[0]).T) < s[-1] + 15.0
             if near.any():
                 k = np.flatnonzero(near)
                 # now, and for pedestrians also where they will be in 1 s and 2 s
                 horizons = (0.0, 1.0, 2.0)
                 for h in horizons:
-                    sel = k[~kerb_a[k]] if h == 0.0 else k[is_ped[k] & (spd_a[k] > 0.2)]
+                    if h == 0.0:
+                        sel = k[~kerb_a[k]]
+                    elif in_junction:  # never brake inside a junction for someone not yet
+                        sel = k[is_ped[k] & ~kerb_a[k] & (spd_a[k] > 0.2)]  # on the road:
+                    else:  # SUMO planned our passage; stopping in it invites a collision
+                        sel = k[is_ped[k] & (spd_a[k] > 0.2)]
                     if len(sel) == 0:
                         continue
                     p = xy_a[sel] + h * spd_a[sel, None] * np.stack(
@@ -777,11 +808,14 @@ class World:
             sel = np.flatnonzero(k > expert.MIN_CURVATURE_1PM)
             curv = tuple((float(s[i + 1]), float(k[i])) for i in sel)
         light, light_d, stop_d = self._light, self._light_d, self._stop_d
-        route_end = None
-        if not self.config.reroute:
-            route_end = self._remaining_route()
-            if route_end > PATH_LOOKAHEAD_M:
-                route_end = None
+        # the end of the route binds only when it will not be extended (any more)
+        remaining = self._remaining_route()
+        route_end = (
+            remaining
+            if remaining < (PATH_LOOKAHEAD_M if not self.config.reroute else 100.0)
+            else None
+        )
+        self._route_end_m = route_end
         return expert.ExpertInput(
             speed_mps=float(r[ls.VAR_SPEED]),
             speed_limit_mps=float(limit),
@@ -795,23 +829,27 @@ class World:
             route_end_m=route_end,
         )
 
+    def _set_route(self, route: list[str] | tuple[str, ...]) -> None:
+        """Cache the ego's route and the length of each of its suffixes."""
+        self._route = tuple(route)
+        lengths = np.array([self._lane(f"{e}_0").length_m for e in self._route])
+        self._route_suffix = np.concatenate([np.cumsum(lengths[::-1])[::-1], [0.0]])
+
     def _remaining_route(self) -> float:
+        """Distance from the ego's front to the end of its route, m."""
         ls = self._ls
         r = self._ego_cache
-        route = ls.vehicle.getRoute(EGO_ID)
-        idx = ls.vehicle.getRouteIndex(EGO_ID)
+        idx = int(r[ls.VAR_ROUTE_INDEX])
         rest = self._lane(r[ls.VAR_LANE_ID]).length_m - r[ls.VAR_LANEPOSITION]
-        for e in route[idx + 1 :]:
-            rest += self._lane(f"{e}_0").length_m
-        return rest
+        return float(rest + self._route_suffix[min(idx + 1, len(self._route))])
 
     def _maybe_reroute(self) -> None:
         ls = self._ls
         r = self._ego_cache
         if r[ls.VAR_LANE_ID].startswith(":") or self._remaining_route() > 250.0:
             return
-        route = list(ls.vehicle.getRoute(EGO_ID))
-        idx = ls.vehicle.getRouteIndex(EGO_ID)
+        route = list(self._route)
+        idx = int(r[ls.VAR_ROUTE_INDEX])
         last = route[-1]
         here = self._drive_xy[self._drive_edges.index(last)]
         dist = np.hypot(*(self._drive_xy - here).T)
@@ -822,9 +860,10 @@ class World:
                 if len(far)
                 else int(self._rng.integers(len(self._drive_edges)))
             )
-            new = ls.simulation.findRoute(last, self._drive_edges[b], "ego_type").edges
+            new = self._find_route(last, self._drive_edges[b], "ego_type")
             if len(new) >= 2:
                 ls.vehicle.setRoute(EGO_ID, route[idx:] + list(new[1:]))
+                self._set_route(route + list(new[1:]))  # the route index stays valid
                 self._stats.reroutes += 1
                 return
 
@@ -867,6 +906,8 @@ class World:
         r = self._ego_cache
         v1 = float(r[ls.VAR_SPEED])
         lane1 = r[ls.VAR_LANE_ID]
+        if self._route_end_m is not None and self._route_end_m < 5.0 and v1 < expert.STOPPED_MPS:
+            self._end("route_end", "the ego stopped at the end of its route")
         if lane1.startswith(":") and not lane0.startswith(":") and first_state in ("r", "u"):
             st.red_light_violations += 1
         if lane1 != lane0 and lane1.startswith(":"):
@@ -878,25 +919,26 @@ class World:
             and v1 < expert.STOPPED_MPS
         ):
             self._stop_wait_s += dt
-            if self._stop_wait_s >= expert.STOP_WAIT_S:
+            if self._stop_wait_s >= expert.STOP_WAIT_S and self._junction_clear():
                 self._stop_done_lane = lane1
         else:
             self._stop_wait_s = 0.0
         # did SUMO hold the ego below the expert's command?
         v_exp = min(self._target, v0 + p.ego_accel_mps2 * dt)
-        v_exp = max(v_exp, v0 - p.ego_comfort_decel_mps2 * dt)
+        v_exp = max(v_exp, v0 - EGO_DECEL_SLACK * p.ego_comfort_decel_mps2 * dt)
         if v1 < v_exp - 0.1 and reason not in ("red_light", "stop_sign", "route_end"):
             reason = self._attribute_hold()
-        if (v0 - v1) / dt > p.ego_comfort_decel_mps2 + 0.5:
-            st.hard_brakes += 1
+        if (v0 - v1) / dt > EGO_DECEL_SLACK * p.ego_comfort_decel_mps2 + 0.3:
+            st.hard_brakes += 1  # harder than any command: SUMO's safety braking
         self._reason = reason
         st.reasons[reason] = st.reasons.get(reason, 0) + 1
         st.distance_m += v1 * dt
         st.speed_sum += v1
-        lead = ls.vehicle.getLeader(EGO_ID, 60.0) if v1 > 2.0 else None
-        if lead and lead[0]:
-            st.gap_sum_s += (lead[1] + 1.0) / v1
-            st.gap_n += 1
+        if reason == "vehicle" and v1 > 2.0:  # following: the time gap actually kept
+            lead = ls.vehicle.getLeader(EGO_ID, 100.0)
+            if lead and lead[0]:
+                st.gap_sum_s += (lead[1] + 1.0) / v1
+                st.gap_n += 1
         self._sense()
         # standing still too long (not at a red light) ends the episode
         if v1 < expert.STOPPED_MPS and self._light != "red":
@@ -910,19 +952,32 @@ class World:
                 self._maybe_reroute()
             self._manage_bubble(st.steps % 50 == 0)
 
+    def _junction_clear(self) -> bool:
+        """No other vehicle is inside the stop-controlled junction ahead (on its internal
+        lanes); people on its crossings are left to the pedestrian rule and SUMO."""
+        if self._stop_junction is None:
+            return True
+        prefix = f":{self._stop_junction}_"
+        ls = self._ls
+        for aid, r in self._context.items():
+            lane = r[ls.VAR_LANE_ID]
+            if aid != EGO_ID and lane.startswith(prefix) and not self._is_kerb(lane):
+                if re.search(r"_c\d+_\d+$", lane) is None:  # not a crossing
+                    return False
+        return True
+
     def _attribute_hold(self) -> str:
+        """Name what SUMO's safety model yields to when it holds the ego below the command."""
         if self._stop_d is not None and self._stop_d < 10.0:
             return "stop_sign"
         pts, s = self._path
         peds = [r[self._ls.VAR_POSITION] for aid, r in self._context.items() if aid.startswith("p")]
         if peds:
             along, lat, _ = _project(np.asarray(peds, dtype=np.float64), pts, s)
-            if np.any((lat < 4.0) & (along > -2.0) & (along < 30.0)):
+            if np.any((lat < 5.0) & (along > -2.0) & (along < 50.0)):
                 return "pedestrian"
-        if self._links and (
-            self._ego_cache[self._ls.VAR_LANE_ID].startswith(":")
-            or (self._link_dist and self._link_dist[0] < 30.0)
-        ):
+        in_junction = self._ego_cache[self._ls.VAR_LANE_ID].startswith(":")
+        if in_junction or (self._link_dist and self._link_dist[0] < 50.0):
             return "junction"
         return "vehicle"
 
@@ -954,6 +1009,15 @@ class World:
         if self.ended is None:
             self.ended = why
             self.end_detail = detail
+            log = _log.info if why == "route_end" else _log.warning
+            log(
+                "episode %s (seed %d) ended at %.1f s: %s (%s)",
+                Path(self.config.net_path).name,
+                self.config.seed,
+                self._stats.sim_s,
+                why,
+                detail,
+            )
 
     # ------------------------------------------------------------------ public
 

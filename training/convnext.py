@@ -131,7 +131,8 @@ class ConvNeXt(nn.Module):
         self.stem = nn.Sequential(
             nn.Conv2d(in_chans, dims[0], kernel_size=4, stride=4), LayerNorm2d(dims[0], eps=1e-6)
         )
-        rates = torch.linspace(0, drop_path, sum(depths)).tolist()
+        n = sum(depths)
+        rates = [drop_path * i / max(n - 1, 1) for i in range(n)]  # linear, 0 at the first
         self.stages = nn.ModuleList()
         self.feature_info = []
         start, prev = 0, dims[0]

@@ -170,9 +170,7 @@ class IIDSU(nn.Module):
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), False)
 
-    def encode(
-        self, image: torch.Tensor, lidar: torch.Tensor, speed: torch.Tensor
-    ) -> torch.Tensor:
+    def encode(self, image: torch.Tensor, lidar: torch.Tensor, speed: torch.Tensor) -> torch.Tensor:
         """The scene feature F_DSU.
 
         Args:

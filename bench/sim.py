@@ -1,0 +1,113 @@
+"""Benchmark the driving world: simulation speed, ego behaviour per profile, safety.
+
+    python bench/sim.py                    # 24 episodes of 120 s over the 8 towns
+    python bench/sim.py --episodes 100 --seconds 180
+
+Prints per episode and in total: simulated seconds per wall second (the World's own stepping,
+expert included, recorded at 2 Hz), wall milliseconds per recorded frame, mean ego speed and
+mean time gap per behaviour profile, ego collisions, red-light violations, teleports and how
+episodes ended. Conditions are drawn as `datagen build` draws them (behaviour.draw_condition).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from collections import Counter, defaultdict
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from datagen.behaviour import draw_condition  # noqa: E402
+from datagen.towns import TOWN_NAMES, town_net_path  # noqa: E402
+from datagen.world import World, WorldConfig, record  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--episodes", type=int, default=24)
+    ap.add_argument("--seconds", type=float, default=120.0, help="simulated seconds per episode")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--towns", default=",".join(TOWN_NAMES))
+    ap.add_argument("--quiet", action="store_true")
+    args = ap.parse_args(argv)
+    towns = args.towns.split(",")
+    nets = {t: town_net_path(t) for t in towns}
+    n_frames = int(args.seconds * 2) + 1
+    rows = []
+    t_all = time.perf_counter()
+    for i in range(args.episodes):
+        town = towns[i % len(towns)]
+        seed = args.seed * 100_000 + i
+        weather, behaviour = draw_condition(np.random.default_rng(seed))
+        cfg = WorldConfig(net_path=nets[town], seed=seed, weather=weather, behaviour=behaviour)
+        t0 = time.perf_counter()
+        with World(cfg) as world:
+            t1 = time.perf_counter()
+            frames = sum(1 for _ in record(world, n_frames))
+            t2 = time.perf_counter()
+            st = world.stats
+        row = dict(
+            town=town,
+            seed=seed,
+            behaviour=behaviour,
+            frames=frames,
+            init_s=t1 - t0,
+            sim_per_wall=st["sim_s"] / max(t2 - t1, 1e-9),
+            ms_per_frame=1000 * (t2 - t1) / max(frames, 1),
+            **st,
+        )
+        rows.append(row)
+        if not args.quiet:
+            print(
+                f"{i:3d} {town:12s} {behaviour:10s} frames={frames:4d} "
+                f"sim/wall={row['sim_per_wall']:6.1f} ms/frame={row['ms_per_frame']:5.2f} "
+                f"v={st['mean_speed_mps']:5.2f} gap={st['mean_time_gap_s'] or float('nan'):5.2f} "
+                f"coll={st['collisions']} rlv={st['red_light_violations']} "
+                f"tele={st['teleports']} end={st['ended']} {st['end_detail']}",
+                flush=True,
+            )
+    wall = time.perf_counter() - t_all
+    sim = sum(r["sim_s"] for r in rows)
+    step_wall = sum(r["sim_s"] / r["sim_per_wall"] for r in rows)
+    print(f"\nepisodes {len(rows)}, simulated {sim:.0f} s in {wall:.1f} s wall (init included)")
+    print(
+        f"stepping: {sim / step_wall:.1f} simulated s per wall s; "
+        f"median {statistics.median(r['ms_per_frame'] for r in rows):.2f} ms per recorded frame "
+        f"(5 steps of 0.1 s); init median {statistics.median(r['init_s'] for r in rows):.2f} s"
+    )
+    by = defaultdict(list)
+    for r in rows:
+        by[r["behaviour"]].append(r)
+    for b, rs in sorted(by.items()):
+        gaps = [r["mean_time_gap_s"] for r in rs if r["mean_time_gap_s"] is not None]
+        print(
+            f"  {b:10s} episodes {len(rs):3d}  mean ego speed "
+            f"{statistics.mean(r['mean_speed_mps'] for r in rs):5.2f} m/s  mean time gap "
+            f"{statistics.mean(gaps) if gaps else float('nan'):5.2f} s"
+        )
+    print(
+        f"ego collisions {sum(r['collisions'] for r in rows)}, red-light violations "
+        f"{sum(r['red_light_violations'] for r in rows)}, hard brakes "
+        f"{sum(r['hard_brakes'] for r in rows)}, teleports (all vehicles) "
+        f"{sum(r['teleports'] for r in rows)}, background collisions "
+        f"{sum(r['other_collisions'] for r in rows)}"
+    )
+    print(f"episode ends: {dict(Counter(r['ended'] or 'ran full length' for r in rows))}")
+    reasons = Counter()
+    for r in rows:
+        reasons.update(r["reasons"])
+    total = sum(reasons.values())
+    print(
+        "expert reasons (share of steps): "
+        + ", ".join(f"{k} {v / total:.1%}" for k, v in reasons.most_common())
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,134 @@
+"""The expert's rules as pure functions (no SUMO)."""
+
+import math
+
+import pytest
+
+from datagen import expert
+from datagen.behaviour import PROFILES
+from datagen.expert import Decision, ExpertInput, Obstacle, decide
+
+P = PROFILES["normal"]
+LIMIT = 13.89
+
+
+def test_cruises_at_limit_times_profile_factor_when_nothing_binds():
+    d = decide(ExpertInput(speed_mps=10.0, speed_limit_mps=LIMIT), P)
+    assert d == Decision(pytest.approx(LIMIT * P.ego_speed_factor), "none")
+
+
+def test_profiles_scale_cruise_speed_in_documented_order():
+    speeds = {
+        name: decide(ExpertInput(10.0, LIMIT), p).target_speed_mps for name, p in PROFILES.items()
+    }
+    assert speeds["cautious"] < speeds["normal"] < speeds["aggressive"]
+
+
+def test_above_the_limit_reports_speed_limit():
+    assert decide(ExpertInput(speed_mps=20.0, speed_limit_mps=LIMIT), P).reason == "speed_limit"
+
+
+def test_lower_limit_ahead_is_approached_at_comfortable_deceleration():
+    d = decide(ExpertInput(13.0, LIMIT, limits_ahead=((20.0, 8.33),)), P)
+    assert d.reason == "speed_limit"
+    v_end = 8.33 * P.ego_speed_factor
+    assert d.target_speed_mps == pytest.approx(
+        math.sqrt(v_end**2 + 2 * P.ego_comfort_decel_mps2 * 20)
+    )
+
+
+def test_sharp_curve_limits_lateral_acceleration():
+    k = 1 / 10.0  # radius 10 m, right here
+    d = decide(ExpertInput(10.0, LIMIT, curvature_ahead=((0.0, k),)), P)
+    assert d.reason == "curve"
+    assert d.target_speed_mps**2 * k == pytest.approx(P.ego_lat_accel_mps2)
+    gentle = decide(ExpertInput(10.0, LIMIT, curvature_ahead=((0.0, 1 / 1000.0),)), P)
+    assert gentle.reason == "none"
+
+
+def test_follow_speed_holds_the_profile_time_gap_at_equal_speeds():
+    for p in PROFILES.values():
+        v = 10.0
+        gap = p.ego_min_gap_m + v * p.ego_time_gap_s
+        assert expert.follow_speed(gap, v, p) == pytest.approx(v)
+        assert expert.follow_speed(gap - 5, v, p) < v < expert.follow_speed(gap + 5, v, p)
+
+
+def test_vehicle_close_ahead_binds_and_stopped_lead_means_stop():
+    d = decide(ExpertInput(10.0, LIMIT, obstacles=(Obstacle(15.0, 5.0, "vehicle"),)), P)
+    assert d.reason == "vehicle" and d.target_speed_mps < 10.0
+    stop = decide(
+        ExpertInput(0.0, LIMIT, obstacles=(Obstacle(P.ego_min_gap_m, 0.0, "vehicle"),)), P
+    )
+    assert stop.target_speed_mps == 0.0
+
+
+def test_cautious_keeps_longer_gaps_than_aggressive():
+    c, a = PROFILES["cautious"], PROFILES["aggressive"]
+    assert expert.follow_speed(30.0, 10.0, c) < expert.follow_speed(30.0, 10.0, a)
+
+
+def test_yields_to_pedestrian_on_path_with_margin():
+    ped = Obstacle(P.ego_ped_margin_m + 0.01, 0.0, "pedestrian")
+    d = decide(ExpertInput(0.5, LIMIT, obstacles=(ped,)), P)
+    assert d == Decision(0.0, "pedestrian")
+    far = decide(ExpertInput(10.0, LIMIT, obstacles=(Obstacle(80.0, 0.0, "pedestrian"),)), P)
+    assert far.reason == "none"
+
+
+def test_red_light_stops_before_the_line():
+    d = decide(ExpertInput(10.0, LIMIT, light="red", light_distance_m=30.0), P)
+    assert d.reason == "red_light"
+    room = 30.0 - expert.STOP_LINE_MARGIN_M
+    assert d.target_speed_mps == pytest.approx(math.sqrt(2 * P.ego_comfort_decel_mps2 * room))
+    at_line = decide(ExpertInput(0.0, LIMIT, light="red", light_distance_m=0.9), P)
+    assert at_line == Decision(0.0, "red_light")
+    green = decide(ExpertInput(10.0, LIMIT, light="green", light_distance_m=5.0), P)
+    assert green.reason == "none"
+
+
+def test_yellow_stops_only_when_comfortable():
+    can = decide(ExpertInput(10.0, LIMIT, light="yellow", light_distance_m=25.0), P)
+    assert can.reason == "red_light"
+    cannot = decide(ExpertInput(13.0, LIMIT, light="yellow", light_distance_m=8.0), P)
+    assert cannot.reason == "none"
+
+
+def test_red_too_close_to_stop_even_hard_goes_on():
+    # committed on yellow, the light turns red 2 m before the line at 13 m/s
+    d = decide(ExpertInput(13.0, LIMIT, light="red", light_distance_m=2.0), P)
+    assert d.reason != "red_light"
+
+
+def test_stop_sign_full_stop_then_released():
+    d = decide(ExpertInput(0.05, LIMIT, stop_distance_m=expert.STOP_SIGN_MARGIN_M), P)
+    assert d == Decision(0.0, "stop_sign")
+    approaching = decide(ExpertInput(10.0, LIMIT, stop_distance_m=20.0), P)
+    assert approaching.reason == "stop_sign" and approaching.target_speed_mps < 10.0
+    done = decide(ExpertInput(0.0, LIMIT, stop_distance_m=0.5, stop_done=True), P)
+    assert done.reason == "none" and done.target_speed_mps > 0
+
+
+def test_route_end_stops():
+    d = decide(ExpertInput(0.2, LIMIT, route_end_m=2.0), P)
+    assert d == Decision(0.0, "route_end")
+
+
+def test_lowest_cap_wins_and_names_the_reason():
+    inp = ExpertInput(
+        10.0,
+        LIMIT,
+        obstacles=(Obstacle(50.0, 8.0, "vehicle"),),
+        light="red",
+        light_distance_m=12.0,
+    )
+    d = decide(inp, P)
+    assert d.reason == "red_light"
+    caps = [rule(inp, P) for _, rule in expert.RULES]
+    assert d.target_speed_mps == pytest.approx(min(caps))
+
+
+def test_every_reason_is_a_schema_category():
+    from schemas import EXPERT_REASONS
+
+    assert {name for name, _ in expert.RULES} | {"none", "junction"} <= set(EXPERT_REASONS)

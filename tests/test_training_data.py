@@ -1,0 +1,139 @@
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyarrow.parquet as pq
+import pytest
+
+import schemas
+from tests.synthetic import synthetic_table
+from training import data
+from training.errors import UserError
+from training.targets import centres_to_objects, decode_centres, render_density
+
+WEATHERS = ("sunny", "cloudy", "rainy", "foggy")
+
+
+def write_shards(
+    root: Path, towns=("alpha", "beta"), episodes: int = 2, frames: int = 4, row_group: int = 3
+) -> Path:
+    """Shards as `datagen build` lays them out: <root>/<town>/<episode_id>.parquet, with small
+    row groups so that streaming crosses row-group boundaries."""
+    k = 0
+    for town in towns:
+        (root / town).mkdir(parents=True, exist_ok=True)
+        for e in range(episodes):
+            episode = f"{town}-{k}-{e}"
+            table = synthetic_table(frames, episode, town, WEATHERS[k % 4], seed=k)
+            pq.write_table(table, root / town / f"{episode}.parquet", row_group_size=row_group)
+            k += 1
+    (root / "_manifest.json").write_text("{}")  # not data: skipped
+    return root
+
+
+@pytest.fixture(scope="module")
+def shards(tmp_path_factory) -> Path:
+    return write_shards(tmp_path_factory.mktemp("shards"), episodes=3, frames=5)
+
+
+def test_frame_numbers_follow_pandas_order(shards):
+    index = data.scan(shards)
+    df = pd.read_parquet(shards, columns=["episode_id", "frame"])
+    assert list(zip(index.episode_id, index.frame)) == list(zip(df.episode_id, df.frame))
+    sample = data.read_frames(index.iloc[[7]], output_px=32)[0]
+    assert (sample["episode_id"], sample["frame"]) == (df.episode_id[7], df.frame[7])
+
+
+def test_split_never_puts_an_episode_on_both_sides(shards):
+    index = data.scan(shards)
+    for fraction in (0.2, 0.5, 0.9):
+        is_val = data.split(index, fraction, seed=3)
+        val, train = set(index.episode_id[is_val]), set(index.episode_id[~is_val])
+        assert val and train and not val & train
+        streamed = {s["episode_id"] for s in data.FrameStream(index[~is_val], 32, shuffle=True)}
+        assert streamed == train
+    is_val = data.split(index, val_towns=("beta",))
+    assert set(index.town[is_val]) == {"beta"} and set(index.town[~is_val]) == {"alpha"}
+    with pytest.raises(UserError, match="no town gamma"):
+        data.split(index, val_towns=("gamma",))
+
+
+def test_ranks_share_the_frames_without_overlap(shards):
+    index = data.scan(shards)
+    seen = []
+    for rank in (0, 1):
+        stream = data.FrameStream(index, 32, shuffle=True, seed=1, rank=rank, world=2)
+        stream.set_epoch(4)
+        seen.append([(s["episode_id"], s["frame"]) for s in stream])
+    assert abs(len(seen[0]) - len(seen[1])) <= 1
+    assert not set(seen[0]) & set(seen[1])
+    assert set(seen[0]) | set(seen[1]) == set(zip(index.episode_id, index.frame))
+
+
+def test_shuffle_depends_on_seed_and_epoch_only(shards):
+    index = data.scan(shards)
+
+    def order(epoch):
+        stream = data.FrameStream(index, 32, shuffle=True, seed=0, buffer_size=4)
+        stream.set_epoch(epoch)
+        return [(s["episode_id"], s["frame"]) for s in stream]
+
+    assert order(1) == order(1) != order(2)
+    assert sorted(order(1)) == sorted(zip(index.episode_id, index.frame))
+
+
+def test_loader_batches_have_documented_shapes(shards):
+    index = data.scan(shards)
+    batch = next(iter(data.make_loader(data.FrameStream(index, 32), 4, num_workers=1)))
+    assert (
+        batch["image"].shape == (4, 3, 256, 256) and batch["image"].dtype.is_floating_point is False
+    )
+    assert batch["lidar"].shape == (4, 4, 256, 256)
+    assert batch["waypoints"].shape == (4, 4, 2) and batch["heatmap"].shape == (4, 3, 32, 32)
+    assert batch["bev"].shape == (4, 32, 32) and batch["traffic"].shape == (4, 2)
+    assert batch["centre_reg"].shape[-1] == 6 and batch["weather"].shape == (4,)
+
+
+def test_targets_decode_back_to_the_boxes():
+    boxes = {
+        "t": np.array([0, 0, 1, 2]),
+        "x": np.array([10.3, 2.0, -5.0, 31.9]),  # -5 m: behind the ego, off the grid
+        "y": np.array([-3.7, 15.9, 0.0, 0.1]),
+        "yaw": np.array([0.4, -2.0, 0.0, 3.0]),
+        "length": np.array([4.5, 0.5, 4.0, 4.0]),
+        "width": np.array([1.8, 0.5, 2.0, 2.0]),
+    }
+    R = 64
+    t = render_density(boxes, R)
+    assert t["heatmap"].max() == 1.0 and t["centre_mask"].sum(1).tolist() == [2, 0, 1]
+    objs = centres_to_objects(t["centre_index"][0], t["centre_reg"][0], t["centre_mask"][0], R)
+    near_first = np.array([[10.3, -3.7, 1.8, 4.5, 0.4], [2.0, 15.9, 0.5, 0.5, -2.0]])
+    np.testing.assert_allclose(objs[:, 1:], near_first, atol=1e-5)
+    # The heatmap's peaks, read with a dense regression map, give the same centres.
+    import torch
+
+    reg = torch.zeros(1, 6, R, R)
+    reg.view(1, 6, -1)[0, :, t["centre_index"][0, :2]] = torch.tensor(t["centre_reg"][0, :2]).T
+    decoded = decode_centres(torch.tensor(t["heatmap"][:1]), reg, threshold=0.99)[0]
+    by_x = decoded[np.argsort(-decoded[:, 1])]
+    np.testing.assert_allclose(by_x[:, 1:3], near_first[:, :2], atol=1e-5)
+
+
+def test_bad_directories_give_clear_errors(tmp_path):
+    with pytest.raises(UserError, match="no such file or directory"):
+        data.scan(tmp_path / "missing")
+    with pytest.raises(UserError, match="no shards"):
+        data.scan(tmp_path)
+    (tmp_path / "notes.parquet").write_text("not parquet")
+    with pytest.raises(UserError, match="notes.parquet: not a Parquet shard"):
+        data.scan(tmp_path)
+    (tmp_path / "notes.parquet").unlink()
+    table = synthetic_table(2)
+    meta = dict(table.schema.metadata)
+    meta[schemas.META_SCHEMA_VERSION.encode()] = b"2.0"
+    pq.write_table(table.replace_schema_metadata(meta), tmp_path / "new.parquet")
+    with pytest.raises(UserError, match="schema version 2.0"):
+        data.scan(tmp_path)
+    pq.write_table(synthetic_table(2).drop_columns(["boxes"]), tmp_path / "new.parquet")
+    with pytest.raises(UserError, match="missing column 'boxes'"):
+        data.scan(tmp_path)

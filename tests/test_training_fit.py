@@ -1,0 +1,94 @@
+import dataclasses
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from tests.test_training_data import write_shards
+from training import data, fit
+from training.config import PRESETS
+
+TINY_MODEL, TINY_TRAIN = PRESETS["tiny"]
+
+
+@pytest.fixture(scope="module")
+def shards(tmp_path_factory) -> Path:
+    return write_shards(tmp_path_factory.mktemp("shards"), episodes=2, frames=4)
+
+
+def _train_cfg(shards: Path, out: Path, **changes):
+    return dataclasses.replace(
+        TINY_TRAIN,
+        shards=str(shards),
+        out=str(out),
+        batch_size=4,
+        num_workers=0,
+        val_fraction=0.25,
+        **changes,
+    )
+
+
+def test_lr_warms_up_then_decays_by_cosine():
+    cfg = dataclasses.replace(TINY_TRAIN, lr=1.0, warmup_frac=0.1, min_lr_frac=0.01)
+    lrs = [fit.lr_at(s, 100, cfg) for s in range(100)]
+    assert lrs[0] == pytest.approx(0.1) and lrs[9] == pytest.approx(1.0)
+    assert all(a >= b for a, b in zip(lrs[9:], lrs[10:]))
+    assert lrs[-1] == pytest.approx(0.01, abs=1e-3)
+
+
+def test_resume_continues_with_identical_state(shards, tmp_path, monkeypatch):
+    # Stochastic depth on, so the restored RNG state matters.
+    model_cfg = dataclasses.replace(TINY_MODEL, drop_path=0.2)
+    whole = fit.fit(model_cfg, _train_cfg(shards, tmp_path / "whole", epochs=2))
+
+    # The same run, interrupted as epoch 2 starts, then resumed.
+    cut = _train_cfg(shards, tmp_path / "cut", epochs=2)
+    set_epoch = data.FrameStream.set_epoch
+
+    def interrupt(self, epoch):
+        if epoch == 1:
+            raise KeyboardInterrupt
+        set_epoch(self, epoch)
+
+    monkeypatch.setattr(data.FrameStream, "set_epoch", interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        fit.fit(model_cfg, cut)
+    assert torch.load(tmp_path / "cut" / "last.pt", weights_only=True)["epoch"] == 1
+    monkeypatch.setattr(data.FrameStream, "set_epoch", set_epoch)
+    resumed = fit.fit(model_cfg, cut, resume=True)
+
+    a, b = (torch.load(p, weights_only=True) for p in (whole, resumed))
+    assert (a["epoch"], a["step"]) == (b["epoch"], b["step"]) == (2, 6)
+    for k in a["model"]:
+        assert torch.equal(a["model"][k], b["model"][k]), k
+    for (i, sa), (j, sb) in zip(a["optimizer"]["state"].items(), b["optimizer"]["state"].items()):
+        assert i == j and all(torch.equal(sa[k], sb[k]) for k in sa)
+    assert torch.equal(a["rng"][0]["torch"], b["rng"][0]["torch"])
+
+    def losses(path):
+        lines = (path.parent / "metrics.jsonl").read_text().splitlines()
+        return [(m["train"], m["val"]) for m in map(json.loads, lines)]
+
+    assert losses(whole) == losses(resumed)
+
+
+def test_ddp_runs_with_two_cpu_processes(shards, tmp_path):
+    out = tmp_path / "ddp"
+    command = [sys.executable, "-m", "torch.distributed.run", "--standalone"]
+    command += ["--nproc_per_node", "2", "-m", "training.cli", "fit", "--shards", str(shards)]
+    command += ["--config", "tiny", "--epochs", "1", "--batch-size", "2", "--workers", "0"]
+    command += ["--val-fraction", "0.25", "--device", "cpu", "--out", str(out)]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    done = subprocess.run(command, capture_output=True, text=True, timeout=120, env=env)
+    assert done.returncode == 0, done.stderr[-3000:]
+    state = torch.load(out / "last.pt", weights_only=True)
+    assert len(state["rng"]) == 2  # both ranks' generator states
+    # 12 training frames: 6 per rank, 3 steps of 2 on each, all 12 frames seen.
+    assert state["step"] == math.ceil(12 / 2 / 2)
+    (metrics,) = map(json.loads, (out / "metrics.jsonl").read_text().splitlines())
+    assert metrics["val"]["total"] > 0 and metrics["train"]["total"] > 0

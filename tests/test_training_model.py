@@ -1,0 +1,116 @@
+import dataclasses
+
+import pytest
+import torch
+
+from tests.test_training_data import write_shards
+from training import data
+from training.config import PRESETS, TrainConfig
+from training.losses import compute_losses, loss_terms
+from training.model import IIDSU, INPUTS
+
+TINY, PAPER = PRESETS["tiny"][0], PRESETS["paper"][0]
+
+
+def _inputs(batch: int, device: str = "cpu"):
+    with torch.device(device):
+        return (
+            torch.zeros(batch, 3, 256, 256, dtype=torch.uint8),
+            torch.zeros(batch, 4, 256, 256, dtype=torch.uint8),
+            torch.full((batch,), 3.0),
+            torch.tensor([[20.0, 1.0]]).expand(batch, 2),
+        )
+
+
+def _shapes(out: dict) -> dict:
+    return {k: tuple(v.shape) for k, v in out.items()}
+
+
+def test_tiny_heads_have_paper_layout():
+    out = IIDSU(TINY)(*_inputs(2))
+    R = TINY.output_px
+    assert _shapes(out) == {
+        "planning": (2, 4, 2),
+        "detection": (2, 21, R, R),
+        "bev": (2, 3, R, R),
+        "traffic": (2, 2),
+        "weather": (2, 4),
+    }
+
+
+def test_paper_model_shapes_on_meta_device():
+    # The paper model (70 M parameters, R = 256) costs seconds per frame on a CPU; meta tensors
+    # check every shape without computing anything.
+    with torch.device("meta"):
+        model = IIDSU(PAPER)
+        f = model.encode(*_inputs(1, "meta")[:3])
+        out = model(*_inputs(1, "meta"))
+    assert tuple(f.shape) == (1, 1024, 8, 8)  # F_DSU
+    assert _shapes(out) == {
+        "planning": (1, 4, 2),
+        "detection": (1, 21, 256, 256),
+        "bev": (1, 3, 256, 256),
+        "traffic": (1, 2),
+        "weather": (1, 4),
+    }
+    assert [m.conv.kernel_size[0] for m in model.eca.values()] == [5] * 5
+    assert 60e6 < sum(p.numel() for p in model.parameters()) < 80e6
+
+
+def test_output_resolution_is_configurable():
+    cfg = dataclasses.replace(TINY, output_px=32)
+    assert IIDSU(cfg)(*_inputs(1))["bev"].shape[-1] == 32
+    with pytest.raises(ValueError, match="output_px"):
+        dataclasses.replace(TINY, output_px=48)
+
+
+@pytest.mark.parametrize(
+    "switch, head, terms",
+    [
+        ("detection", "detection", {"det", "heat", "reg"}),
+        ("bev", "bev", {"bev"}),
+        ("traffic", "traffic", {"tf", "light", "stop"}),
+        ("weather", "weather", {"weather"}),
+    ],
+)
+def test_each_ablation_removes_its_head_and_loss(switch, head, terms, tmp_path_factory):
+    cfg = dataclasses.replace(TINY, **{switch: False})
+    model = IIDSU(cfg)
+    assert head not in model.heads and head not in model.eca
+    full = IIDSU(TINY)
+    assert sum(p.numel() for p in model.parameters()) < sum(p.numel() for p in full.parameters())
+    batch = _batch(tmp_path_factory, n=2)
+    losses = compute_losses(model(*(batch[k] for k in INPUTS)), batch, TrainConfig())
+    assert not terms & losses.keys()
+    assert set(losses) == set(loss_terms(cfg.heads)) == set(loss_terms(TINY.heads)) - terms
+
+
+def test_single_frame_lidar_reads_two_channels():
+    model = IIDSU(dataclasses.replace(TINY, single_frame_lidar=True))
+    assert model.lidar_encoder.stem[0].in_channels == 2
+    assert model(*_inputs(1))["planning"].shape == (1, 4, 2)
+
+
+def _batch(tmp_path_factory, n: int) -> dict:
+    root = write_shards(tmp_path_factory.mktemp("frames"), towns=("alpha",), episodes=1, frames=n)
+    stream = data.FrameStream(data.scan(root), TINY.output_px)
+    return next(iter(data.make_loader(stream, n, num_workers=0)))
+
+
+def test_loss_falls_when_overfitting_a_few_frames(tmp_path_factory):
+    torch.manual_seed(0)
+    batch = _batch(tmp_path_factory, n=4)
+    model = IIDSU(TINY)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=2e-3)
+    cfg = TrainConfig()
+    history = []
+    for _ in range(40):
+        losses = compute_losses(model(*(batch[k] for k in INPUTS)), batch, cfg)
+        optimizer.zero_grad()
+        losses["total"].backward()
+        optimizer.step()
+        history.append({k: v.item() for k, v in losses.items()})
+    first, last = history[0], history[-1]
+    assert last["total"] < 0.3 * first["total"]
+    for term in ("wp", "heat", "reg", "bev", "tf", "weather"):
+        assert last[term] < first[term], term

@@ -1,0 +1,47 @@
+"""Checkpoints: one `torch.save`d dict per file, written atomically, loadable without pickle code.
+
+Keys: model (state dict), optimizer (state dict), model_config and train_config (dicts,
+`training/config.py`), epoch (epochs completed), step (optimizer steps taken; the learning-rate
+schedule is a pure function of it), rng (per DDP rank, the torch CPU and CUDA generator states),
+val_episodes (the held-out episode ids), metrics (the last epoch's `metrics.jsonl` line).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+
+from training.config import ModelConfig
+from training.errors import UserError
+from training.model import IIDSU
+
+
+def save_checkpoint(path: Path, state: dict) -> None:
+    """Write `state` to `path` through a temporary file and a rename, so that a reader (or a
+    crash) never sees half a checkpoint."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """A checkpoint written by `train fit`; UserError if there is none or it is something else."""
+    p = Path(path)
+    if not p.is_file():
+        raise UserError(f"{path}: no such checkpoint")
+    try:
+        state = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises a variety of types for a foreign or truncated file
+        raise UserError(f"{path}: not a checkpoint written by `train fit` ({e})") from None
+    if not isinstance(state, dict) or not {"model", "model_config"} <= state.keys():
+        raise UserError(f"{path}: not a checkpoint written by `train fit` (keys missing)")
+    return state
+
+
+def model_from_checkpoint(state: dict, device: torch.device | str = "cpu") -> IIDSU:
+    """The checkpoint's model in eval mode on `device`."""
+    model = IIDSU(ModelConfig.from_dict(state["model_config"]))
+    model.load_state_dict(state["model"])
+    return model.to(device).eval()

@@ -1,0 +1,247 @@
+"""`train`: fit, evaluate, analyze and show the II-DSU model on iidsu shards.
+
+train fit --shards data/ --config tiny --epochs 1 --out runs/demo     train (OUT/last.pt)
+train eval --ckpt runs/demo/last.pt --shards data/                   metrics table + JSON
+train analyze --ckpt runs/demo/last.pt                               ECA similarity (Table II)
+train show --ckpt runs/demo/last.pt --shards data/ --frame 10 --out f.png   inputs + outputs
+
+Data-parallel: torchrun --standalone --nproc_per_node N -m training.cli fit ...
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+
+from training.config import PRESETS, ModelConfig, TrainConfig
+from training.errors import UserError
+
+FRAME_ORDER = (
+    "frames are numbered as `pd.read_parquet(DIR)` orders them: shard files in sorted path "
+    "order, rows in file order"
+)
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that reports a usage mistake in one line (and exit status 2)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def _positive(kind):
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        if value <= 0:
+            raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+        return value
+
+    return parse
+
+
+def _fraction(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0.0 <= value < 1.0:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1), got {text}")
+    return value
+
+
+def _workers(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
+    return value
+
+
+# fit flags -> (config, field); a flag left out keeps the preset's (or checkpoint's) value.
+TRAIN_FLAGS = {
+    "shards": "shards",
+    "out": "out",
+    "epochs": "epochs",
+    "batch_size": "batch_size",
+    "lr": "lr",
+    "workers": "num_workers",
+    "val_fraction": "val_fraction",
+    "val_towns": "val_towns",
+    "seed": "seed",
+    "compile": "compile",
+}
+MODEL_FLAGS = {
+    "output_px": "output_px",
+    "no_detection": "detection",
+    "no_bev": "bev",
+    "no_traffic": "traffic",
+    "no_weather": "weather",
+    "single_frame_lidar": "single_frame_lidar",
+}
+RESUMABLE = {"shards", "out", "epochs", "workers", "compile"}  # may change on --resume
+
+
+def _add_fit(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--shards", help="shard directory (or one .parquet file); default data")
+    p.add_argument(
+        "--config", choices=sorted(PRESETS), help="preset: paper (default) or tiny (for CPUs)"
+    )
+    p.add_argument("--out", help="run directory for last.pt and metrics.jsonl; default runs/iidsu")
+    p.add_argument("--epochs", type=_positive(int), help="epochs in all (paper preset: 30)")
+    p.add_argument("--batch-size", type=_positive(int), help="per process (paper: 32, tiny: 8)")
+    p.add_argument("--lr", type=_positive(float), help="peak learning rate (paper 1e-4)")
+    p.add_argument("--workers", type=_workers, help="DataLoader workers per process")
+    p.add_argument("--val-fraction", type=_fraction, help="share of episodes held out (0.1)")
+    p.add_argument(
+        "--val-towns",
+        type=lambda s: tuple(t for t in s.split(",") if t),
+        help="hold out these towns' episodes instead (comma-separated)",
+    )
+    p.add_argument("--seed", type=int, help="seed of weights, split and data order (0)")
+    p.add_argument("--output-px", type=_positive(int), help="R, side of the dense heads' maps")
+    p.add_argument("--compile", action="store_true", default=None, help="torch.compile the model")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    ablation = p.add_argument_group("ablations (the paper's Table III)")
+    for flag, what in (
+        ("--no-detection", "object density (detection & prediction) head"),
+        ("--no-bev", "BEV map head"),
+        ("--no-traffic", "traffic rule head"),
+        ("--no-weather", "weather head"),
+    ):
+        ablation.add_argument(flag, action="store_true", default=None, help=f"drop the {what}")
+    ablation.add_argument(
+        "--single-frame-lidar",
+        action="store_true",
+        default=None,
+        help="LiDAR input of the current sweep only (2 channels)",
+    )
+
+
+def _configs(args) -> tuple[ModelConfig, TrainConfig]:
+    """Preset configs with the flags the user gave applied; on --resume, the checkpoint's, where
+    only RESUMABLE flags may differ from what the run was started with."""
+    given = {k for k in {*TRAIN_FLAGS, *MODEL_FLAGS} if getattr(args, k) is not None}
+    train_changes = {f: getattr(args, a) for a, f in TRAIN_FLAGS.items() if a in given}
+    model_changes = {}
+    for a, f in MODEL_FLAGS.items():
+        if a in given:  # --no-X switches head X off; the others set their field
+            model_changes[f] = False if a.startswith("no_") else getattr(args, a)
+    try:
+        if not args.resume:
+            model_cfg, train_cfg = PRESETS[args.config or "paper"]
+            return dataclasses.replace(model_cfg, **model_changes), dataclasses.replace(
+                train_cfg, **train_changes
+            )
+        from training.checkpoint import load_checkpoint
+        from training.fit import CHECKPOINT
+
+        state = load_checkpoint(f"{args.out or TrainConfig.out}/{CHECKPOINT}")
+        model_cfg = ModelConfig.from_dict(state["model_config"])
+        train_cfg = TrainConfig.from_dict(state["train_config"])
+        base = PRESETS[args.config][0] if args.config else model_cfg
+        if dataclasses.replace(base, **model_changes) != model_cfg:
+            raise UserError("--config and the model flags must match the checkpoint's on --resume")
+    except ValueError as e:  # a field value the config refuses (e.g. --output-px)
+        raise UserError(str(e)) from None
+    changed = [
+        "--" + a.replace("_", "-")
+        for a, f in TRAIN_FLAGS.items()
+        if a in given and a not in RESUMABLE and getattr(train_cfg, f) != getattr(args, a)
+    ]
+    if changed:
+        raise UserError(f"{', '.join(changed)}: cannot change on --resume (the checkpoint's stay)")
+    return model_cfg, dataclasses.replace(train_cfg, **train_changes)
+
+
+def _run_fit(args) -> int:
+    from training.fit import fit
+
+    model_cfg, train_cfg = _configs(args)
+    fit(model_cfg, train_cfg, resume=args.resume, device=args.device)
+    return 0
+
+
+def _add_eval(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--ckpt", required=True, help="checkpoint written by train fit")
+    p.add_argument("--shards", required=True, help="shard directory (or one .parquet file)")
+    p.add_argument(
+        "--split",
+        choices=("all", "val"),
+        default="all",
+        help="all frames (default; for a held-out directory) or the fit's validation episodes",
+    )
+    p.add_argument("--out", help="JSON file for the metrics; default CKPT's stem + .eval.json")
+    p.add_argument("--batch-size", type=_positive(int), default=16)
+    p.add_argument("--workers", type=_workers, default=2)
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+
+
+def _run_eval(args) -> int:
+    from training.evaluate import run
+
+    return run(args)
+
+
+def _add_analyze(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--ckpt", required=True, help="checkpoint written by train fit")
+    p.add_argument("--shards", help="frames to average over; default the fit's --shards")
+    p.add_argument("--frames", type=_positive(int), default=256, help="at most this many (256)")
+    p.add_argument("--out", help="JSON file; default CKPT's stem + .analyze.json")
+    p.add_argument("--batch-size", type=_positive(int), default=16)
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+
+
+def _run_analyze(args) -> int:
+    from training.analyze import run
+
+    return run(args)
+
+
+def _add_show(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--ckpt", required=True, help="checkpoint written by train fit")
+    p.add_argument("--shards", required=True, help="shard directory (or one .parquet file)")
+    p.add_argument("--frame", type=int, default=0, help=f"frame number; {FRAME_ORDER}")
+    p.add_argument("--out", help="PNG to write; default show-FRAME.png beside CKPT")
+
+
+def _run_show(args) -> int:
+    from training.show import run
+
+    return run(args)
+
+
+COMMANDS = {
+    "fit": ("train the model; writes OUT/last.pt and OUT/metrics.jsonl", _add_fit, _run_fit),
+    "eval": ("planning, detection, BEV, traffic and weather metrics", _add_eval, _run_eval),
+    "analyze": ("cosine similarity of ECA channel weights (Table II)", _add_analyze, _run_analyze),
+    "show": ("a PNG of one frame's inputs and predictions (Fig. 5)", _add_show, _run_show),
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _Parser(
+        prog="train", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    for name, (help_, add, _) in COMMANDS.items():
+        add(sub.add_parser(name, help=help_, description=help_))
+    args = parser.parse_args(argv)
+    try:
+        return int(COMMANDS[args.command][2](args) or 0)
+    except UserError as e:
+        print(f"train {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"train {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

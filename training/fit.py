@@ -1,0 +1,325 @@
+"""Train II-DSU: one loop, the same on a laptop CPU and on a GPU box, alone or under DDP.
+
+    train fit --shards data/ --config tiny --epochs 1 --out runs/demo           # CPU, minutes
+    train fit --shards data/ --out runs/paper                                   # one GPU
+    torchrun --standalone --nproc_per_node 8 -m training.cli fit --shards data/ --out runs/paper
+    train fit --shards data/ --out runs/paper --resume                          # continue
+
+Per epoch the loop streams the training episodes (training/data.py), steps AdamW with a
+warm-up + cosine learning rate, measures the loss terms on the held-out episodes, appends a
+line to OUT/metrics.jsonl (and to TensorBoard when it is installed) and writes OUT/last.pt
+atomically. A resumed run takes weights, optimizer moments, step, epoch and RNG states from
+last.pt, and the data order is a function of (seed, epoch), so it continues exactly.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from contextlib import nullcontext
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+from torch.nn.parallel import DistributedDataParallel
+from tqdm import tqdm
+
+from training import data
+from training.checkpoint import load_checkpoint, save_checkpoint
+from training.config import ModelConfig, TrainConfig
+from training.errors import UserError
+from training.losses import compute_losses, loss_terms
+from training.model import IIDSU, INPUTS
+
+CHECKPOINT = "last.pt"
+METRICS = "metrics.jsonl"
+
+
+def lr_at(step: int, total_steps: int, cfg: TrainConfig) -> float:
+    """Learning rate of optimizer step `step` (0-based) of `total_steps`."""
+    warmup = int(cfg.warmup_frac * total_steps)
+    # 1) linear warm-up from lr / warmup to lr
+    if step < warmup:
+        return cfg.lr * (step + 1) / warmup
+    # 2) cosine decay from lr to lr * min_lr_frac over the remaining steps
+    progress = min(1.0, (step - warmup) / max(1, total_steps - warmup))
+    min_lr = cfg.lr * cfg.min_lr_frac
+    return min_lr + 0.5 * (1.0 + math.cos(math.pi * progress)) * (cfg.lr - min_lr)
+
+
+@dataclass(frozen=True)
+class Process:
+    """This process's place in a (possibly one-process) data-parallel run."""
+
+    rank: int
+    world: int
+    device: torch.device
+
+    @property
+    def master(self) -> bool:
+        return self.rank == 0
+
+
+def choose_device(device: str = "auto") -> torch.device:
+    """ "auto" (CUDA if present), "cpu" or "cuda"; UserError if CUDA is asked for but absent."""
+    if device == "cuda" and not torch.cuda.is_available():
+        raise UserError("--device cuda: no CUDA device is available")
+    use_cuda = device == "cuda" or (device == "auto" and torch.cuda.is_available())
+    if use_cuda:
+        return torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+    return torch.device("cpu")
+
+
+def start_process(device: str = "auto") -> Process:
+    """Join the process group when started by torchrun (WORLD_SIZE > 1): NCCL on GPUs, gloo on
+    CPUs. `device` as in `choose_device`; under torchrun, process LOCAL_RANK takes GPU LOCAL_RANK."""
+    dev = choose_device(device)
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1:
+        dist.init_process_group("nccl" if dev.type == "cuda" else "gloo")
+    if dev.type == "cuda":
+        torch.cuda.set_device(dev)
+    return Process(dist.get_rank() if world > 1 else 0, world, dev)
+
+
+def to_device(batch: dict, device: torch.device) -> dict:
+    """Tensors of a batch onto `device` (the camera and LiDAR in channels_last, the layout the
+    convolutions run fastest in, on CPU too: see training/convnext.py); other values as is."""
+    moved = {}
+    for k, v in batch.items():
+        if isinstance(v, torch.Tensor):
+            fmt = torch.channels_last if v.ndim == 4 else torch.preserve_format
+            v = v.to(device, non_blocking=True, memory_format=fmt)
+        moved[k] = v
+    return moved
+
+
+def make_optimizer(model: torch.nn.Module, cfg: TrainConfig) -> torch.optim.AdamW:
+    """AdamW with weight decay on weight matrices and kernels only, not on norms and biases."""
+    params = [p for p in model.parameters() if p.requires_grad]
+    groups = [
+        {"params": [p for p in params if p.ndim >= 2], "weight_decay": cfg.weight_decay},
+        {"params": [p for p in params if p.ndim < 2], "weight_decay": 0.0},
+    ]
+    return torch.optim.AdamW(groups, lr=cfg.lr, fused=torch.cuda.is_available())
+
+
+def _all_sum(values: dict[str, torch.Tensor], proc: Process) -> dict[str, float]:
+    """Sum per-process tensors over the process group; the result as floats."""
+    keys = sorted(values)
+    stacked = torch.stack([values[k].double() for k in keys])
+    if proc.world > 1:
+        stacked = stacked.to(proc.device if proc.device.type == "cuda" else "cpu")
+        dist.all_reduce(stacked)
+    return dict(zip(keys, stacked.tolist()))
+
+
+@torch.no_grad()
+def estimate_loss(
+    model: IIDSU, loader, cfg: TrainConfig, proc: Process, autocast
+) -> dict[str, float]:
+    """Mean of every loss term over the frames of `loader` (all ranks' shares together).
+
+    Runs the bare model, not the DDP wrapper: ranks hold different numbers of validation
+    batches, and DDP's forward would wait for the others."""
+    model.eval()
+    sums: dict[str, torch.Tensor] = {}
+    for batch in loader:
+        batch = to_device(batch, proc.device)
+        with autocast:
+            out = model(*(batch[k] for k in INPUTS))
+        n = len(batch["speed"])
+        for k, v in compute_losses(out, batch, cfg).items():
+            sums[k] = sums.get(k, torch.zeros((), device=proc.device)) + v.detach() * n
+        sums["n"] = sums.get("n", torch.zeros((), device=proc.device)) + n
+    model.train()
+    # Every rank joins the reduction with the same keys, also one that had no frames.
+    zero = torch.zeros((), device=proc.device)
+    sums = {k: sums.get(k, zero) for k in (*loss_terms(model.cfg.heads), "n")}
+    total = _all_sum(sums, proc)
+    n = total.pop("n")
+    return {k: v / n for k, v in total.items()} if n else {}
+
+
+def _rng_state(device: torch.device) -> dict:
+    state = {"torch": torch.get_rng_state()}
+    if device.type == "cuda":
+        state["cuda"] = torch.cuda.get_rng_state(device)
+    return state
+
+
+def _set_rng_state(state: dict, device: torch.device) -> None:
+    torch.set_rng_state(state["torch"])
+    if device.type == "cuda" and "cuda" in state:
+        torch.cuda.set_rng_state(state["cuda"], device)
+
+
+def _tensorboard(out: Path):
+    """A SummaryWriter when TensorBoard is installed, else None."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        return None
+    return SummaryWriter(str(out / "tensorboard"))
+
+
+def fit(model_cfg: ModelConfig, cfg: TrainConfig, resume: bool = False, device: str = "auto"):
+    """Train for `cfg.epochs` epochs (from the last completed one with `resume`); returns the
+    path of the checkpoint, OUT/last.pt."""
+    proc = start_process(device)
+    out = Path(cfg.out)
+    ckpt_path = out / CHECKPOINT
+    state = load_checkpoint(ckpt_path) if resume else None
+    try:
+        return _fit(model_cfg, cfg, proc, out, state)
+    finally:
+        if proc.world > 1:
+            dist.destroy_process_group()
+
+
+def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, state: dict | None):
+    # Data: every rank scans and splits the same way (both are deterministic).
+    index = data.scan(cfg.shards)
+    is_val = data.split(index, cfg.val_fraction, cfg.val_towns, cfg.seed)
+    stream = data.FrameStream(
+        index[~is_val],
+        model_cfg.output_px,
+        True,
+        cfg.seed,
+        cfg.shuffle_buffer,
+        proc.rank,
+        proc.world,
+    )
+    val_stream = data.FrameStream(
+        index[is_val], model_cfg.output_px, rank=proc.rank, world=proc.world
+    )
+    if stream.frames_per_rank() == 0:
+        raise UserError(f"{cfg.shards}: no training frames for {proc.world} process(es)")
+    loader = data.make_loader(stream, cfg.batch_size, cfg.num_workers)
+    val_loader = data.make_loader(val_stream, cfg.batch_size, cfg.num_workers)
+    # Every rank takes the same number of steps (DDP all-reduces in each one).
+    steps_per_epoch = math.ceil(stream.frames_per_rank() / cfg.batch_size)
+    total_steps = cfg.epochs * steps_per_epoch
+
+    # Model and optimizer; the same initial weights on every rank (DDP also broadcasts them).
+    torch.manual_seed(cfg.seed)
+    model = IIDSU(model_cfg).to(proc.device, memory_format=torch.channels_last)
+    optimizer = make_optimizer(model, cfg)
+    first_epoch, step = 0, 0
+    if state is not None:
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        first_epoch, step = state["epoch"], state["step"]
+        rng = state["rng"]
+        _set_rng_state(rng[proc.rank] if len(rng) == proc.world else rng[0], proc.device)
+    else:
+        torch.manual_seed(cfg.seed + proc.rank)  # stochastic depth differs between ranks
+    raw_model = model
+    if cfg.compile:
+        model = torch.compile(model)
+    if proc.world > 1:
+        ids = [proc.device.index] if proc.device.type == "cuda" else None
+        model = DistributedDataParallel(model, device_ids=ids)
+    # bf16 autocast on GPUs (no loss scaling needed, unlike fp16); float32 on CPUs.
+    cuda = proc.device.type == "cuda"
+    autocast = torch.autocast("cuda", dtype=torch.bfloat16) if cuda else nullcontext()
+
+    writer = None
+    if proc.master:
+        out.mkdir(parents=True, exist_ok=True)
+        if state is None:  # a fresh run replaces an old one's log
+            (out / METRICS).write_text("")
+        writer = _tensorboard(out)
+        print(
+            f"train fit: {len(index)} frames, {int((~is_val).sum())} for training and "
+            f"{int(is_val.sum())} held out ({index.episode_id[is_val].nunique()} of "
+            f"{index.episode_id.nunique()} episodes); {steps_per_epoch} steps/epoch x "
+            f"{proc.world} process(es); "
+            f"{sum(p.numel() for p in raw_model.parameters()) / 1e6:.2f} M parameters; "
+            f"{proc.device}; epochs {first_epoch + 1}..{cfg.epochs}"
+        )
+
+    for epoch in range(first_epoch, cfg.epochs):
+        stream.set_epoch(epoch)
+        model.train()
+        sums: dict[str, torch.Tensor] = {}
+        seen, t0 = 0, time.perf_counter()
+        bar = tqdm(
+            total=steps_per_epoch,
+            desc=f"epoch {epoch + 1}/{cfg.epochs}",
+            disable=not proc.master,
+            dynamic_ncols=True,
+        )
+        for i, batch in zip(range(steps_per_epoch), loader):
+            lr = lr_at(step, total_steps, cfg)
+            for group in optimizer.param_groups:
+                group["lr"] = lr
+            batch = to_device(batch, proc.device)
+            with autocast:
+                outputs = model(*(batch[k] for k in INPUTS))
+            terms = compute_losses(outputs, batch, cfg)
+            optimizer.zero_grad(set_to_none=True)
+            terms["total"].backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+            optimizer.step()
+            step += 1
+            n = len(batch["speed"])
+            seen += n
+            for k, v in terms.items():  # summed on the device: no sync per step
+                sums[k] = sums.get(k, 0.0) + v.detach() * n
+            bar.update()
+            if i % 10 == 0 or i == steps_per_epoch - 1:  # .item() waits for the GPU: not often
+                rate = seen * proc.world / (time.perf_counter() - t0)
+                bar.set_postfix(loss=f"{terms['total'].item():.3f}", samples_s=f"{rate:.1f}")
+        bar.close()
+        elapsed = time.perf_counter() - t0
+        sums["n"] = torch.tensor(float(seen), device=proc.device)
+        train = _all_sum(sums, proc)
+        n_train = train.pop("n")
+        metrics = {
+            "epoch": epoch + 1,
+            "step": step,
+            "lr": lr,
+            "time_s": round(elapsed, 3),
+            "samples_per_s": round(n_train / elapsed, 2),
+            "train": {k: v / n_train for k, v in train.items()},
+            "val": estimate_loss(raw_model, val_loader, cfg, proc, autocast),
+        }
+        rngs = [None] * proc.world
+        if proc.world > 1:
+            dist.all_gather_object(rngs, _rng_state(proc.device))
+        else:
+            rngs = [_rng_state(proc.device)]
+        if proc.master:
+            checkpoint = {
+                "model": raw_model.state_dict(),
+                "optimizer": optimizer.state_dict(),
+                "model_config": model_cfg.to_dict(),
+                "train_config": cfg.to_dict(),
+                "epoch": epoch + 1,
+                "step": step,
+                "rng": rngs,
+                "val_episodes": sorted(index.episode_id[is_val].unique()),
+                "metrics": metrics,
+            }
+            save_checkpoint(out / CHECKPOINT, checkpoint)
+            with open(out / METRICS, "a") as f:
+                f.write(json.dumps(metrics) + "\n")
+            if writer is not None:
+                for split_name in ("train", "val"):
+                    for k, v in metrics[split_name].items():
+                        writer.add_scalar(f"{split_name}/{k}", v, epoch + 1)
+                writer.add_scalar("lr", lr, epoch + 1)
+                writer.flush()
+            val = metrics["val"].get("total")
+            print(
+                f"epoch {epoch + 1}: train loss {metrics['train']['total']:.4f}, val loss "
+                + (f"{val:.4f}" if val is not None else "n/a (no validation episodes)")
+                + f", {metrics['samples_per_s']:.1f} samples/s -> {out / CHECKPOINT}"
+            )
+    if writer is not None:
+        writer.close()
+    return out / CHECKPOINT

@@ -1,0 +1,101 @@
+"""The multi-task loss of II-DSU (paper Sec. III-C, Eq. 1-3):
+
+    L = l_wp L_wp + l_O (alpha L_heat + beta L_reg) + l_M L_M + l_tf (gamma L_light + delta L_sign)
+        + l_wc L_wc
+
+L_wp: L1 between predicted and expert waypoints. L_heat: CenterNet's penalty-reduced focal loss
+(a cross-entropy that down-weights easy negatives and pixels near a centre), L_reg: smooth L1 at
+object centres. L_M, L_wc: cross-entropy. L_light, L_sign: binary cross-entropy. A head switched
+off (an ablation) has no output, so its term is absent from the sum. Every term is computed in
+float32, also under bf16 autocast.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from training.config import TrainConfig
+from training.targets import gather_centres, split_density
+
+TERMS = {
+    "planning": ("wp", "total"),
+    "detection": ("heat", "reg", "det"),
+    "bev": ("bev",),
+    "traffic": ("light", "stop", "tf"),
+    "weather": ("weather",),
+}
+"""The terms `compute_losses` returns for each head present ("total" always)."""
+
+
+def loss_terms(heads: tuple[str, ...]) -> tuple[str, ...]:
+    """Names of the terms `compute_losses` returns for a model with these heads."""
+    return tuple(t for h in heads for t in TERMS[h])
+
+
+def focal_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """CenterNet's focal loss (alpha 2, beta 4) over heatmaps, normalised by the object count.
+
+    logits, target: (B, T, R, R); target is 1 at centres and a Gaussian in [0, 1) around them.
+    """
+    logits, target = logits.float(), target.float()
+    pos = target.eq(1).float()
+    log_p = F.logsigmoid(logits)
+    log_not_p = F.logsigmoid(-logits)
+    p = log_p.exp()
+    pos_loss = (1 - p) ** 2 * log_p * pos
+    neg_loss = (1 - target) ** 4 * p**2 * log_not_p * (1 - pos)
+    return -(pos_loss.sum() + neg_loss.sum()) / pos.sum().clamp(min=1)
+
+
+def centre_smooth_l1(
+    regression: torch.Tensor, index: torch.Tensor, target: torch.Tensor, mask: torch.Tensor
+) -> torch.Tensor:
+    """Smooth L1 over the 6 regression channels at object centres, averaged per object.
+
+    regression: (B, T, 6, R, R) predicted maps; index (B, T, K) flat centre pixels; target
+    (B, T, K, 6); mask (B, T, K), 1 for real entries.
+    """
+    pred = gather_centres(regression.float(), index)  # (B, T, K, 6)
+    loss = F.smooth_l1_loss(pred, target, reduction="none").sum(dim=3)
+    return (loss * mask).sum() / mask.sum().clamp(min=1)
+
+
+def compute_losses(
+    out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], cfg: TrainConfig
+) -> dict[str, torch.Tensor]:
+    """Every loss term for the heads present in `out`, and their weighted sum as "total".
+
+    Args:
+        out: the model's outputs (training/model.py).
+        batch: targets from the loader: waypoints (B, 4, 2) m; heatmap (B, 3, R, R);
+            centre_index, centre_mask (B, 3, K), centre_reg (B, 3, K, 6) (training/targets.py);
+            bev (B, R, R) uint8 class ids; traffic (B, 2) 0/1 float32
+            (red light, stop sign); weather (B,) int64.
+    Returns:
+        scalar tensors: wp, and as present heat, reg, det, bev, light, stop, tf, weather; total.
+    """
+    terms = {"wp": F.l1_loss(out["planning"].float(), batch["waypoints"])}
+    total = cfg.lambda_wp * terms["wp"]
+    if "detection" in out:
+        heat, reg = split_density(out["detection"])
+        terms["heat"] = focal_loss(heat, batch["heatmap"])
+        terms["reg"] = centre_smooth_l1(
+            reg, batch["centre_index"], batch["centre_reg"], batch["centre_mask"]
+        )
+        terms["det"] = cfg.alpha * terms["heat"] + cfg.beta * terms["reg"]
+        total = total + cfg.lambda_o * terms["det"]
+    if "bev" in out:
+        terms["bev"] = F.cross_entropy(out["bev"].float(), batch["bev"].long())
+        total = total + cfg.lambda_m * terms["bev"]
+    if "traffic" in out:
+        logits = out["traffic"].float()
+        terms["light"] = F.binary_cross_entropy_with_logits(logits[:, 0], batch["traffic"][:, 0])
+        terms["stop"] = F.binary_cross_entropy_with_logits(logits[:, 1], batch["traffic"][:, 1])
+        terms["tf"] = cfg.gamma * terms["light"] + cfg.delta * terms["stop"]
+        total = total + cfg.lambda_tf * terms["tf"]
+    if "weather" in out:
+        terms["weather"] = F.cross_entropy(out["weather"].float(), batch["weather"])
+        total = total + cfg.lambda_wc * terms["weather"]
+    terms["total"] = total
+    return terms
