@@ -93,21 +93,46 @@ class CameraWeather:
 
 CAMERA_WEATHER = {
     "sunny": CameraWeather(
-        sky_zenith_rgb=(70, 125, 215), sky_horizon_rgb=(175, 205, 235), ambient=0.45, sun=0.85,
-        saturation=1.1, brightness=1.0, visibility_m=3000.0, fog_rgb=(175, 205, 235),
+        sky_zenith_rgb=(70, 125, 215),
+        sky_horizon_rgb=(175, 205, 235),
+        ambient=0.45,
+        sun=0.85,
+        saturation=1.1,
+        brightness=1.0,
+        visibility_m=3000.0,
+        fog_rgb=(175, 205, 235),
     ),
     "cloudy": CameraWeather(
-        sky_zenith_rgb=(150, 153, 160), sky_horizon_rgb=(200, 202, 206), ambient=0.85, sun=0.12,
-        saturation=0.7, brightness=0.95, visibility_m=1500.0, fog_rgb=(195, 197, 201),
+        sky_zenith_rgb=(150, 153, 160),
+        sky_horizon_rgb=(200, 202, 206),
+        ambient=0.85,
+        sun=0.12,
+        saturation=0.7,
+        brightness=0.95,
+        visibility_m=1500.0,
+        fog_rgb=(195, 197, 201),
     ),
     "rainy": CameraWeather(
-        sky_zenith_rgb=(72, 76, 84), sky_horizon_rgb=(118, 122, 130), ambient=0.62, sun=0.05,
-        saturation=0.6, brightness=0.72, visibility_m=350.0, fog_rgb=(112, 116, 124), wet=1.0,
+        sky_zenith_rgb=(72, 76, 84),
+        sky_horizon_rgb=(118, 122, 130),
+        ambient=0.62,
+        sun=0.05,
+        saturation=0.6,
+        brightness=0.72,
+        visibility_m=350.0,
+        fog_rgb=(112, 116, 124),
+        wet=1.0,
         streaks=260,
     ),
     "foggy": CameraWeather(
-        sky_zenith_rgb=(178, 180, 184), sky_horizon_rgb=(178, 180, 184), ambient=0.8, sun=0.1,
-        saturation=0.8, brightness=1.0, visibility_m=90.0, fog_rgb=(178, 180, 184),
+        sky_zenith_rgb=(178, 180, 184),
+        sky_horizon_rgb=(178, 180, 184),
+        ambient=0.8,
+        sun=0.1,
+        saturation=0.8,
+        brightness=1.0,
+        visibility_m=90.0,
+        fog_rgb=(178, 180, 184),
     ),
 }
 
@@ -164,6 +189,8 @@ class Camera:
     def __init__(self, config: CameraConfig = CameraConfig()):
         self.config = config
         self.directions_ego = ray_directions(config)
+        self._dirs32 = self.directions_ego.astype(np.float32)
+        self._cache: dict = {}
 
     @property
     def n_rays(self) -> int:
@@ -172,14 +199,46 @@ class Camera:
     def rays(self, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
         """World-frame (origins, directions), each (n_rays, 3) float32."""
         c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
-        d = self.directions_ego
-        dirs = np.empty((len(d), 3), np.float32)
-        dirs[:, 0] = c * d[:, 0] - s * d[:, 1]
-        dirs[:, 1] = s * d[:, 0] + c * d[:, 1]
+        d = self._dirs32  # (elementwise: numpy's float32 matmul with K=3 is ~10x slower)
+        dirs = np.empty_like(d)
+        dirs[:, 0] = np.float32(c) * d[:, 0] - np.float32(s) * d[:, 1]
+        dirs[:, 1] = np.float32(s) * d[:, 0] + np.float32(c) * d[:, 1]
         dirs[:, 2] = d[:, 2]
         ox, oy = pose.world_from_ego(np.array([[self.config.mount_x_m, 0.0]]))[0]
         origin = np.array([ox, oy, self.config.mount_z_m], np.float32)
         return np.broadcast_to(origin, dirs.shape).copy(), dirs
+
+    def actor_rays(self, scene: FrameScene, pose: Pose) -> np.ndarray | None:
+        """Indices of the pixels whose ray can hit an agent's bounding sphere (None: all):
+        the union of each sphere's projected bounding rectangle."""
+        cfg = self.config
+        if not len(scene.agents):
+            return np.zeros(0, np.int64)
+        cam = pose.ego_from_world(scene.actor_centres_m[:, :2])
+        fwd = cam[:, 0] - cfg.mount_x_m
+        right = -cam[:, 1]
+        down = cfg.mount_z_m - scene.actor_centres_m[:, 2]
+        r = scene.actor_radii_m + 0.05
+        ahead = fwd + r > 0
+        if ((fwd - r < 0.05) & ahead).any():
+            return None  # a sphere around the camera plane: cast everything
+        f = cfg.focal_px
+        x0 = (cfg.width_px - cfg.crop_px) / 2 + 0.5 - cfg.width_px / 2
+        y0 = (cfg.height_px - cfg.crop_px) / 2 + 0.5 - cfg.height_px / 2
+        depth = np.stack([fwd - r, fwd + r], 1)[:, :, None]  # (A, 2, 1)
+        us = f * np.stack([right - r, right + r], 1)[:, None, :] / depth  # (A, 2, 2)
+        vs = f * np.stack([down - r, down + r], 1)[:, None, :] / depth
+        c0 = np.floor(us.min((1, 2)) - x0).astype(int)
+        c1 = np.ceil(us.max((1, 2)) - x0).astype(int)
+        r0 = np.floor(vs.min((1, 2)) - y0).astype(int)
+        r1 = np.ceil(vs.max((1, 2)) - y0).astype(int)
+        n = cfg.crop_px
+        mask = np.zeros((n, n), bool)
+        for a in np.flatnonzero(ahead):
+            if c1[a] < 0 or r1[a] < 0 or c0[a] >= n or r0[a] >= n:
+                continue
+            mask[max(r0[a], 0) : r1[a] + 1, max(c0[a], 0) : c1[a] + 1] = True
+        return np.flatnonzero(mask)
 
     def render(
         self,
@@ -199,74 +258,113 @@ class Camera:
         """
         cfg = self.config
         origins, dirs = self.rays(pose)
-        dist, prim = scene.cast(origins, dirs, cfg.range_m)
-        hit = prim >= 0
-        sky = _sky(dirs[:, 2], weather)  # (N, 3) float32 0..1
-        rgb = sky.copy()
-        hi = np.flatnonzero(hit)
+        dist, prim = scene.cast(origins, dirs, cfg.range_m, self.actor_rays(scene, pose))
+        sky, reflected_sky = self._skies(weather)
+        hi = np.flatnonzero(prim >= 0)
         p = prim[hi]
         d = dirs[hi]
         t = dist[hi]
         n = scene.normals[p]
-        facing = (n * d).sum(1)
-        n = np.where((facing > 0)[:, None], -n, n)
-        cos_view = np.abs(facing)
-        albedo = scene.colour_rgb[p].astype(np.float32) * (1 / 255)
+        facing = np.einsum("ij,ij->i", n, d)
+        n *= np.where(facing > 0, np.float32(-1), np.float32(1))[:, None]  # towards the camera
+        albedo = scene.colour_rgb[p].astype(np.float32)  # 0..255
         mat = scene.material[p]
-        pts = origins[hi] + d * t[:, None]
+        pts = origins[0] + d * t[:, None]
 
         # Procedural windows on building walls.
-        wall = (mat == Material.BUILDING) & (np.abs(n[:, 2]) < 0.3)
-        if wall.any():
-            w = np.flatnonzero(wall)
-            u = pts[w, 0] * -n[w, 1] + pts[w, 1] * n[w, 0]
-            z = pts[w, 2]
-            win = ((z % WINDOW_FLOOR_M) > 1.0) & ((z % WINDOW_FLOOR_M) < 2.4) & (z > 0.9)
-            win &= ((u % WINDOW_BAY_M) > 0.8) & ((u % WINDOW_BAY_M) < 2.8)
-            albedo[w[win]] = GLASS_RGB + 0.25 * np.asarray(weather.sky_horizon_rgb, np.float32) / 255
+        wall = np.flatnonzero((mat == Material.BUILDING) & (np.abs(n[:, 2]) < 0.3))
+        if len(wall):
+            u = pts[wall, 0] * -n[wall, 1] + pts[wall, 1] * n[wall, 0]
+            z = pts[wall, 2]
+            zf, uf = z % WINDOW_FLOOR_M, u % WINDOW_BAY_M
+            win = (zf > 1.0) & (zf < 2.4) & (z > 0.9) & (uf > 0.8) & (uf < 2.8)
+            albedo[wall[win]] = self._glass(weather)
 
-        # Light: ambient + sun (with shadows when sunny).
+        # Light: ambient + sun (with shadows when sunny); walls see half the sky.
         sun = np.asarray(sun_dir, np.float32)
         lambert = np.maximum(n @ sun, 0)
         if cfg.shadows and weather.sun > 0.5:
             lit = np.flatnonzero(lambert > 0)
-            o = pts[lit] + n[lit] * 0.03
-            shadowed = scene.occluded(o.astype(np.float32), np.broadcast_to(sun, o.shape).copy(), 200.0)
-            lambert[lit[shadowed]] = 0
-        light = weather.ambient + weather.sun * lambert
-        # Up-facing surfaces see the whole sky, walls half of it.
-        light = light * (0.75 + 0.25 * np.abs(n[:, 2]))
-        colour = albedo * light[:, None]
+            o = pts[lit] + n[lit] * np.float32(0.03)
+            near = _shadow_candidates(o, scene, sun)
+            lambert[lit[scene.occluded(o, sun[None], 200.0, near)]] = 0
+        light = (weather.ambient + weather.sun * lambert) * (0.75 + 0.25 * np.abs(n[:, 2]))
+        light *= np.float32(weather.brightness / 255)
+        colour = albedo * light[:, None]  # 0..1
 
         # Wet surfaces: darker, and mirror the sky at grazing angles (Schlick, F0 = 0.04).
         if weather.wet > 0:
-            flat = np.isin(mat, (Material.ROAD, Material.MARKING, Material.SIDEWALK)) & (n[:, 2] > 0.9)
-            f = (0.04 + 0.96 * (1 - cos_view) ** 5) * weather.wet * flat
-            colour *= (1 - 0.35 * weather.wet * flat)[:, None]
-            refl = _sky(-d[:, 2], weather)
-            colour = colour * (1 - f[:, None]) + refl * f[:, None]
+            flat = np.flatnonzero((mat <= Material.SIDEWALK) & (n[:, 2] > 0.9))  # road, marking, sidewalk
+            cos_view = np.abs(facing[flat])
+            f = ((0.04 + 0.96 * (1 - cos_view) ** 5) * weather.wet)[:, None]
+            colour[flat] = colour[flat] * (1 - 0.35 * weather.wet) * (1 - f) + reflected_sky[hi[flat]] * f
 
         # Lamps glow (unshaded) in their signal's colour.
-        is_lamp = mat == Material.LAMP
-        if is_lamp.any():
-            k = np.flatnonzero(is_lamp)
-            tag = scene.tag[p[k]]
+        lamp = np.flatnonzero(mat == Material.LAMP)
+        if len(lamp):
+            tag = scene.tag[p[lamp]]
             head, slot = tag // 3, tag % 3
-            on = np.zeros(len(k), bool) if lamps is None else lamps[head] == slot
-            colour[k] = np.where(on[:, None], LAMP_RGB[slot], LAMP_RGB[slot] * 0.18)
+            on = np.zeros(len(lamp), bool) if lamps is None else lamps[head] == slot
+            colour[lamp] = LAMP_RGB[slot] * np.where(on, 1.0, 0.18)[:, None].astype(np.float32)
 
-        # Distance fades to the weather's fog/haze colour.
-        fade = np.exp(-3.912 * t / weather.visibility_m)[:, None]
-        fog = np.asarray(weather.fog_rgb, np.float32) / 255
-        rgb[hi] = colour * fade + fog * (1 - fade)
-
-        # Saturation and brightness.
-        grey = rgb.mean(1, keepdims=True)
-        rgb = (grey + (rgb - grey) * weather.saturation) * weather.brightness
-        img = (np.clip(rgb, 0, 1) * 255).astype(np.uint8).reshape(cfg.crop_px, cfg.crop_px, 3)
+        # Distance fades to the weather's fog/haze colour: fog + (colour - fog) * fade.
+        fade = np.exp(t * np.float32(-3.912 / weather.visibility_m))[:, None]
+        fog = np.asarray(weather.fog_rgb, np.float32) * np.float32(weather.brightness / 255)
+        colour -= fog
+        colour *= fade
+        colour += fog
+        rgb = sky.copy()
+        rgb[hi] = colour
+        img = cv2.convertScaleAbs(rgb, alpha=255.0).reshape(cfg.crop_px, cfg.crop_px, 3)
+        if weather.saturation != 1.0:  # blend with the image's grey (luma), one OpenCV pass
+            grey = cv2.cvtColor(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY), cv2.COLOR_GRAY2RGB)
+            img = cv2.addWeighted(img, weather.saturation, grey, 1.0 - weather.saturation, 0)
         if weather.streaks:
             img = _rain_streaks(img, weather.streaks, rng)
         return img
+
+    def _skies(self, weather: CameraWeather) -> tuple[np.ndarray, np.ndarray]:
+        """Per-pixel sky colour (N, 3) float32 0..1 (brightness applied) and the sky mirrored
+        below the horizon (what wet ground reflects). The camera has no pitch or roll, so both
+        depend only on the pixel: computed once per weather."""
+        key = ("sky", weather)
+        if key not in self._cache:
+            dz = self.directions_ego[:, 2]
+            self._cache[key] = (
+                _sky(dz, weather) * np.float32(weather.brightness),
+                _sky(-dz, weather) * np.float32(weather.brightness),
+            )
+        return self._cache[key]
+
+    def _glass(self, weather: CameraWeather) -> np.ndarray:
+        """Window colour (0..255): dark glass reflecting a little of the horizon."""
+        return GLASS_RGB * 255 + 0.25 * np.asarray(weather.sky_horizon_rgb, np.float32)
+
+
+def _shadow_candidates(points: np.ndarray, scene: FrameScene, sun: np.ndarray) -> np.ndarray:
+    """Indices of the points (N, 3) that an agent's shadow can reach: those on a 1 m raster
+    of capsules from each agent's bounding sphere away from the sun, as long as the agent's
+    shadow (height / tan(sun elevation))."""
+    if not len(scene.agents):
+        return np.zeros(0, np.int64)
+    c = scene.actor_centres_m[:, :2]
+    r = scene.actor_radii_m + 1.0
+    flat = math.hypot(float(sun[0]), float(sun[1]))
+    away = -np.asarray(sun[:2], np.float64) / max(flat, 1e-6)
+    length = 2 * scene.actor_centres_m[:, 2] * flat / max(float(sun[2]), 0.1)
+    ends = c + away * length[:, None]
+    lo = np.minimum(c, ends).min(0) - r.max() - 1
+    hi = np.maximum(c, ends).max(0) + r.max() + 1
+    shape = np.ceil(hi - lo).astype(int)[::-1]  # rows = y, cols = x
+    grid = np.zeros(shape, np.uint8)
+    for a in range(len(c)):
+        p0 = tuple(int(v) for v in np.round(c[a] - lo))
+        p1 = tuple(int(v) for v in np.round(ends[a] - lo))
+        cv2.line(grid, p0, p1, 1, int(2 * r[a]) + 1)
+    ij = np.floor(points[:, :2] - lo.astype(np.float32)).astype(np.int32)
+    inside = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < shape[1]) & (ij[:, 1] < shape[0])
+    idx = np.flatnonzero(inside)
+    return idx[grid[ij[idx, 1], ij[idx, 0]] > 0]
 
 
 def _sky(dz: np.ndarray, weather: CameraWeather) -> np.ndarray:

@@ -123,13 +123,11 @@ class Sensors:
         self.weather = weather
         self.lidar = lidar.Lidar(config.lidar)
         self.camera = camera.Camera(config.camera)
-        self.builder = SceneBuilder(
-            static,
-            lidar_range_m=config.lidar.range_m,
-            camera_range_m=config.camera.range_m,
-            camera_half_fov_rad=config.camera.crop_half_fov_rad,
-            camera_x_m=config.camera.mount_x_m,
+        reach = max(
+            config.lidar.range_m + abs(config.lidar.mount_x_m),
+            config.camera.range_m + abs(config.camera.mount_x_m),
         )
+        self.builder = SceneBuilder(static, reach_m=reach)
         lidar_rng, camera_rng, pose_rng, sun_rng = rng.spawn(4)
         self.lidar_rng, self.camera_rng, self.pose_rng = lidar_rng, camera_rng, pose_rng
         self.sun = camera.sun_direction(sun_rng)
@@ -266,4 +264,3 @@ def _process(
     )
     timer.lap("encode")
     return row
-

@@ -33,7 +33,12 @@ AGENT_RGB = (223, 218, 8)
 PERSON_RGB = (0, 220, 220)
 WAYPOINT_RGB = (0, 0, 255)
 TARGET_RGB = (255, 0, 255)
-LIGHT_RGB = {"red": (255, 40, 40), "yellow": (255, 200, 0), "green": (40, 220, 90), "none": (150, 150, 150)}
+LIGHT_RGB = {
+    "red": (255, 40, 40),
+    "yellow": (255, 200, 0),
+    "green": (40, 220, 90),
+    "none": (150, 150, 150),
+}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -50,7 +55,9 @@ def shard_files(path: Path) -> list[Path]:
     if not path.is_dir():
         raise UserError(f"{path}: no such file or directory")
     files = sorted(
-        p for p in path.rglob("*.parquet") if not any(part.startswith("_") for part in p.relative_to(path).parts)
+        p
+        for p in path.rglob("*.parquet")
+        if not any(part.startswith("_") for part in p.relative_to(path).parts)
     )
     if not files:
         raise UserError(f"{path}: no .parquet shards")
@@ -97,7 +104,9 @@ def _ego_to_px(xy: np.ndarray) -> np.ndarray:
 def _box_px(x: float, y: float, yaw: float, length: float, width: float) -> np.ndarray:
     c, s = np.cos(yaw), np.sin(yaw)
     corners = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]]) * [length / 2, width / 2]
-    xy = np.stack([x + c * corners[:, 0] - s * corners[:, 1], y + s * corners[:, 0] + c * corners[:, 1]], 1)
+    xy = np.stack(
+        [x + c * corners[:, 0] - s * corners[:, 1], y + s * corners[:, 0] + c * corners[:, 1]], 1
+    )
     return _ego_to_px(xy)
 
 
@@ -124,7 +133,9 @@ def draw(row: dict) -> np.ndarray:
     left = np.concatenate([cv2.resize(image, (256, 256)), lid.astype(np.uint8)], 0)
 
     size = BEV_SIZE_PX * SCALE
-    bev = cv2.resize(BEV_COLOURS_RGB[np.clip(classes, 0, 2)], (size, size), interpolation=cv2.INTER_NEAREST)
+    bev = cv2.resize(
+        BEV_COLOURS_RGB[np.clip(classes, 0, 2)], (size, size), interpolation=cv2.INTER_NEAREST
+    )
     boxes = sorted(row["boxes"] or [], key=lambda b: -b["t"])
     for b in boxes:
         rgb = PERSON_RGB if b["cls"] == "pedestrian" else AGENT_RGB
@@ -147,7 +158,16 @@ def draw(row: dict) -> np.ndarray:
         d = tp - start
         d = d / max(np.linalg.norm(d), 1e-9)
         end = start + d * (size * 0.45)
-        cv2.arrowedLine(bev, tuple(int(v) for v in start), tuple(int(v) for v in end), TARGET_RGB, 2, cv2.LINE_AA, 0, 0.06)
+        cv2.arrowedLine(
+            bev,
+            tuple(int(v) for v in start),
+            tuple(int(v) for v in end),
+            TARGET_RGB,
+            2,
+            cv2.LINE_AA,
+            0,
+            0.06,
+        )
 
     panel = np.full((size, 300, 3), 24, np.uint8)
     light = row["traffic_light"]
@@ -156,9 +176,14 @@ def draw(row: dict) -> np.ndarray:
         (f"{row['episode_id']}  frame {row['frame']}", (220, 220, 220)),
         (f"t = {row['time_s']:.1f} s", (220, 220, 220)),
         ("", None),
-        (f"traffic light: {light}{dist(row['light_distance_m'])}", LIGHT_RGB.get(light, (220, 220, 220))),
-        (f"stop sign: {'yes' + dist(row['stop_distance_m']) if row['stop_sign'] else 'no'}",
-         (255, 80, 80) if row["stop_sign"] else (220, 220, 220)),
+        (
+            f"traffic light: {light}{dist(row['light_distance_m'])}",
+            LIGHT_RGB.get(light, (220, 220, 220)),
+        ),
+        (
+            f"stop sign: {'yes' + dist(row['stop_distance_m']) if row['stop_sign'] else 'no'}",
+            (255, 80, 80) if row["stop_sign"] else (220, 220, 220),
+        ),
         (f"weather: {row['weather']}", (220, 220, 220)),
         (f"behaviour: {row['behaviour']}", (220, 220, 220)),
         ("", None),
@@ -174,7 +199,9 @@ def draw(row: dict) -> np.ndarray:
     ]
     for i, (text, rgb) in enumerate(lines):
         if text:
-            cv2.putText(panel, text, (12, 30 + 26 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.5, rgb, 1, cv2.LINE_AA)
+            cv2.putText(
+                panel, text, (12, 30 + 26 * i), cv2.FONT_HERSHEY_SIMPLEX, 0.5, rgb, 1, cv2.LINE_AA
+            )
     return np.concatenate([left, bev, panel], 1)
 
 

@@ -39,8 +39,14 @@ _SUBPIXEL_BITS = 3  # fillPoly vertex precision: 1/8 px
 
 def bev_area_corners(pose: Pose) -> np.ndarray:
     """(4, 2) world corners of the BEV area of the ego at `pose`."""
-    ego = np.array([[0.0, BEV_SIDE_M], [BEV_AHEAD_M, BEV_SIDE_M], [BEV_AHEAD_M, -BEV_SIDE_M],
-                    [0.0, -BEV_SIDE_M]])
+    ego = np.array(
+        [
+            [0.0, BEV_SIDE_M],
+            [BEV_AHEAD_M, BEV_SIDE_M],
+            [BEV_AHEAD_M, -BEV_SIDE_M],
+            [0.0, -BEV_SIDE_M],
+        ]
+    )
     return pose.world_from_ego(ego)
 
 
@@ -51,12 +57,16 @@ def bev_semantic(static: StaticScene, pose: Pose) -> np.ndarray:
     corners = bev_area_corners(pose)
     lo, hi = corners.min(0), corners.max(0)
     bb = static.bev_bbox_m
-    sel = np.flatnonzero((bb[:, 0] <= hi[0]) & (bb[:, 2] >= lo[0]) & (bb[:, 1] <= hi[1]) & (bb[:, 3] >= lo[1]))
+    sel = np.flatnonzero(
+        (bb[:, 0] <= hi[0]) & (bb[:, 2] >= lo[0]) & (bb[:, 1] <= hi[1]) & (bb[:, 3] >= lo[1])
+    )
     if not len(sel):
         return img
     starts, ends = static.bev_start[sel], static.bev_start[sel + 1]
     lens = ends - starts
-    idx = np.repeat(starts - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens) + np.arange(lens.sum())
+    idx = np.repeat(starts - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens) + np.arange(
+        lens.sum()
+    )
     ego = pose.ego_from_world(static.bev_xy_m[idx])
     row, col = ego_to_bev_px(ego[:, 0], ego[:, 1])
     # OpenCV puts pixel i's centre at i; ours (schemas.bev) at i + 0.5.
@@ -64,8 +74,9 @@ def bev_semantic(static: StaticScene, pose: Pose) -> np.ndarray:
     pts = np.stack([(col - 0.5) * scale, (row - 0.5) * scale], 1).round().astype(np.int32)
     offs = np.concatenate([[0], np.cumsum(lens)])
     for k, p in enumerate(sel):
-        cv2.fillPoly(img, [pts[offs[k] : offs[k + 1]]], int(static.bev_class[p]), cv2.LINE_8,
-                     _SUBPIXEL_BITS)
+        cv2.fillPoly(
+            img, [pts[offs[k] : offs[k + 1]]], int(static.bev_class[p]), cv2.LINE_8, _SUBPIXEL_BITS
+        )
     return img
 
 
@@ -76,13 +87,13 @@ def in_bev_area(x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
 
 
 def boxes(
-    frame: FrameState, future: Sequence[FrameState], lidar_hits: np.ndarray | None = None
+    frame: FrameState, future: Sequence[FrameState], lidar_hits: dict[str, int] | None = None
 ) -> list[dict]:
     """`boxes` column entries: agents inside the BEV area at t (frame), t+0.5 s and t+1.0 s
     (future[0], future[1]), all in the ego frame at t.
 
     Args:
-        lidar_hits: (len(frame.agents),) LiDAR returns per agent at t (0 if None).
+        lidar_hits: LiDAR returns at t per track id (lidar.Sweep.actor_hits); missing: 0.
     """
     pose = frame.ego.pose
     out: list[dict] = []
@@ -95,7 +106,7 @@ def boxes(
         inside = in_bev_area(xy[:, 0], xy[:, 1])
         for k in np.flatnonzero(inside):
             a = agents[k]
-            hits = int(lidar_hits[k]) if (t == 0 and lidar_hits is not None) else 0
+            hits = int(lidar_hits.get(a.track_id, 0)) if (t == 0 and lidar_hits) else 0
             out.append(
                 {
                     "track_id": a.track_id,
@@ -123,7 +134,7 @@ def waypoints(frame: FrameState, future: Sequence[FrameState]) -> list[float]:
 
 
 def frame_labels(
-    frame: FrameState, future: Sequence[FrameState], lidar_hits: np.ndarray | None = None
+    frame: FrameState, future: Sequence[FrameState], lidar_hits: dict[str, int] | None = None
 ) -> dict:
     """Every non-sensor column of one row (schemas.FIELDS) except the episode's identity
     (episode_id, frame, town, weather, behaviour) and the binary sensor columns."""
@@ -145,4 +156,3 @@ def frame_labels(
         "expert_reason": frame.expert_reason,
         "boxes": boxes(frame, future, lidar_hits),
     }
-

@@ -251,17 +251,20 @@ def _polygon_triangles(ring: np.ndarray, z_m: float) -> np.ndarray:
 
 
 # Unit box: 12 triangles, faces +x, -x, +y, -y, +z, -z (two triangles each), corners at +-0.5.
-_BOX_QUADS = np.array(
-    [
-        [[1, -1, -1], [1, 1, -1], [1, 1, 1], [1, -1, 1]],
-        [[-1, 1, -1], [-1, -1, -1], [-1, -1, 1], [-1, 1, 1]],
-        [[1, 1, -1], [-1, 1, -1], [-1, 1, 1], [1, 1, 1]],
-        [[-1, -1, -1], [1, -1, -1], [1, -1, 1], [-1, -1, 1]],
-        [[-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]],
-        [[-1, 1, -1], [1, 1, -1], [1, -1, -1], [-1, -1, -1]],
-    ],
-    np.float64,
-) * 0.5
+_BOX_QUADS = (
+    np.array(
+        [
+            [[1, -1, -1], [1, 1, -1], [1, 1, 1], [1, -1, 1]],
+            [[-1, 1, -1], [-1, -1, -1], [-1, -1, 1], [-1, 1, 1]],
+            [[1, 1, -1], [-1, 1, -1], [-1, 1, 1], [1, 1, 1]],
+            [[-1, -1, -1], [1, -1, -1], [1, -1, 1], [-1, -1, 1]],
+            [[-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]],
+            [[-1, 1, -1], [1, 1, -1], [1, -1, -1], [-1, -1, -1]],
+        ],
+        np.float64,
+    )
+    * 0.5
+)
 UNIT_BOX = np.concatenate([_BOX_QUADS[:, [0, 1, 2]], _BOX_QUADS[:, [0, 2, 3]]], axis=0)[
     np.array([0, 6, 1, 7, 2, 8, 3, 9, 4, 10, 5, 11])
 ]  # (12, 3, 3), face f is triangles 2f, 2f+1
@@ -270,7 +273,10 @@ BOX_FACE_TOP = np.repeat(np.array([0, 0, 0, 0, 1, 0]), 2).astype(bool)
 
 
 def boxes_triangles(
-    centre_xyz: np.ndarray, size_xyz: np.ndarray, yaw_rad: np.ndarray, faces: np.ndarray | None = None
+    centre_xyz: np.ndarray,
+    size_xyz: np.ndarray,
+    yaw_rad: np.ndarray,
+    faces: np.ndarray | None = None,
 ) -> np.ndarray:
     """Oriented boxes -> (B, F, 3, 3) triangles.
 
@@ -362,7 +368,7 @@ class StaticScene:
         return c + self.tile_origin_m
 
 
-class _Builder:
+class MeshBuilder:
     """Accumulates triangles with their material, colour and tag."""
 
     def __init__(self) -> None:
@@ -400,7 +406,7 @@ def build_static_scene(net_path: Path | str, network_sha256: str = "") -> Static
     )
     sha = network_sha256 or hashlib.sha256(Path(net_path).read_bytes()).hexdigest()
     rng = np.random.default_rng(int(sha[:12], 16))
-    b = _Builder()
+    b = MeshBuilder()
     bev: list[tuple[int, np.ndarray]] = []  # (class, ring)
     cutouts: list[np.ndarray] = []
     occupied: list[np.ndarray] = []  # rings nothing may be built on
@@ -408,7 +414,9 @@ def build_static_scene(net_path: Path | str, network_sha256: str = "") -> Static
     stop_posts: list[tuple[float, float, float]] = []
 
     edges = net.getEdges(withInternal=True)
-    pairs = {(e.getFromNode().getID(), e.getToNode().getID()) for e in edges if e.getFunction() == ""}
+    pairs = {
+        (e.getFromNode().getID(), e.getToNode().getID()) for e in edges if e.getFunction() == ""
+    }
 
     def lane_xy(lane) -> np.ndarray:
         return _dedupe(np.asarray(lane.getShape(), np.float64)[:, :2])
@@ -453,8 +461,8 @@ def build_static_scene(net_path: Path | str, network_sha256: str = "") -> Static
             occupied.append(ring)
             if _is_sidewalk(perms):
                 b.add(_strip_triangles(L, R, SIDEWALK_HEIGHT_M), Material.SIDEWALK)
+                # the curb: only the road side (SUMO's lane 0, the sidewalk, is the rightmost)
                 b.add(_walls(L, 0.0, SIDEWALK_HEIGHT_M, closed=False), Material.SIDEWALK)
-                b.add(_walls(R, 0.0, SIDEWALK_HEIGHT_M, closed=False), Material.SIDEWALK)
                 cutouts.append(ring)
                 continue
             b.add(_strip_triangles(L, R, 0.0), Material.ROAD)
@@ -504,7 +512,9 @@ def build_static_scene(net_path: Path | str, network_sha256: str = "") -> Static
                 fwd = np.array([math.cos(heading), math.sin(heading)])
                 # distance to the outer edge of the edge's lane 0: on a sidewalk, 0.5 m inside
                 # its outer edge; without one, FURNITURE_SIDE_OFFSET_M beyond the road.
-                outer = w / 2 + sum(ln.getWidth() for ln in lanes if ln.getIndex() < lane.getIndex())
+                outer = w / 2 + sum(
+                    ln.getWidth() for ln in lanes if ln.getIndex() < lane.getIndex()
+                )
                 if _is_sidewalk(lanes[0].getPermissions()) and lane.getIndex() > 0:
                     side = outer - 0.5
                 else:
@@ -533,40 +543,72 @@ def build_static_scene(net_path: Path | str, network_sha256: str = "") -> Static
         _add_signal(b, k, x, y, yaw)
     for x, y, yaw in stop_posts:
         _add_stop_sign(b, x, y, yaw)
-    furniture = [np.array([[x - 0.5, y - 0.5], [x + 0.5, y - 0.5], [x + 0.5, y + 0.5]]) for x, y, _ in heads + stop_posts]
+    furniture = [
+        np.array([[x - 0.5, y - 0.5], [x + 0.5, y - 0.5], [x + 0.5, y + 0.5]])
+        for x, y, _ in heads + stop_posts
+    ]
 
     # Buildings and trees in rows along the roads, off every road, sidewalk and junction.
     occ_polys = [Polygon(r) for r in occupied if len(r) >= 3]
     _add_buildings(b, edges, pairs, STRtree(occ_polys), furniture, rng)
 
-    # Terrain: one quad per tile over the network's box plus a margin.
+    # BEV polygons in painting order: drivable, cut-outs, markings.
+    rings = [r for c, r in bev if c == 1] + cutouts + [r for c, r in bev if c == 2]
+    classes = (
+        [1] * sum(c == 1 for c, _ in bev) + [0] * len(cutouts) + [2] * sum(c == 2 for c, _ in bev)
+    )
+    return assemble_static_scene(b, rings, classes, heads, sha)
+
+
+def assemble_static_scene(
+    b: MeshBuilder,
+    bev_rings: Sequence[np.ndarray] = (),
+    bev_classes: Sequence[int] = (),
+    heads: Sequence[tuple[float, float, float]] = (),
+    network_sha256: str = "",
+    terrain: bool = True,
+) -> StaticScene:
+    """Finish a static scene from accumulated triangles: grass terrain under everything (one
+    quad per tile, TERRAIN_MARGIN_M beyond), tiles, normals and the BEV polygons (painted in
+    the given order). Also how tests build small hand-made scenes."""
     tris = np.concatenate(b.tris)
     lo = tris[..., :2].reshape(-1, 2).min(0) - TERRAIN_MARGIN_M
     hi = tris[..., :2].reshape(-1, 2).max(0) + TERRAIN_MARGIN_M
     origin = np.floor(lo / TILE_M) * TILE_M
     shape = np.ceil((hi - origin) / TILE_M).astype(np.int64)
-    ix, iy = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
-    x0 = origin[0] + ix.ravel() * TILE_M
-    y0 = origin[1] + iy.ravel() * TILE_M
-    quads = np.stack(
-        [np.stack([x0, y0], 1), np.stack([x0 + TILE_M, y0], 1),
-         np.stack([x0 + TILE_M, y0 + TILE_M], 1), np.stack([x0, y0 + TILE_M], 1)], 1
-    )
-    z = np.full(quads.shape[:2] + (1,), TERRAIN_Z_M)
-    q = np.concatenate([quads, z], 2)
-    b.add(np.concatenate([q[:, [0, 1, 2]], q[:, [0, 2, 3]]]), Material.TERRAIN)
+    if terrain:
+        ix, iy = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
+        x0 = origin[0] + ix.ravel() * TILE_M
+        y0 = origin[1] + iy.ravel() * TILE_M
+        quads = np.stack(
+            [
+                np.stack([x0, y0], 1),
+                np.stack([x0 + TILE_M, y0], 1),
+                np.stack([x0 + TILE_M, y0 + TILE_M], 1),
+                np.stack([x0, y0 + TILE_M], 1),
+            ],
+            1,
+        )
+        q = np.concatenate([quads, np.full(quads.shape[:2] + (1,), TERRAIN_Z_M)], 2)
+        b.add(np.concatenate([q[:, [0, 1, 2]], q[:, [0, 2, 3]]]), Material.TERRAIN)
 
     tris = np.concatenate(b.tris)
     material = np.concatenate(b.mat)
     colour = np.concatenate(b.rgb)
     tag = np.concatenate(b.tag)
 
-    # Tiles: sort by the tile of the centroid; reach = max planar centroid->tile-centre->vertex.
+    # Tiles: sort by the tile of the centroid; reach = farthest vertex from the tile's centre.
     cen = tris[..., :2].mean(1)
     tix = np.clip(((cen - origin) // TILE_M).astype(np.int64), 0, shape - 1)
     tid = tix[:, 0] * shape[1] + tix[:, 1]
     order = np.argsort(tid, kind="stable")
-    tris, material, colour, tag, tid = tris[order], material[order], colour[order], tag[order], tid[order]
+    tris, material, colour, tag, tid = (
+        tris[order],
+        material[order],
+        colour[order],
+        tag[order],
+        tid[order],
+    )
     n_tiles = int(shape[0] * shape[1])
     tile_start = np.searchsorted(tid, np.arange(n_tiles + 1)).astype(np.int64)
     centres = origin + (np.stack([tid // shape[1], tid % shape[1]], 1) + 0.5) * TILE_M
@@ -574,12 +616,10 @@ def build_static_scene(net_path: Path | str, network_sha256: str = "") -> Static
     reach = np.zeros(n_tiles, np.float32)
     np.maximum.at(reach, tid, reach_tri.astype(np.float32))
 
-    # BEV polygons in painting order: drivable, cut-outs, markings.
-    rings = [r for c, r in bev if c == 1] + cutouts + [r for c, r in bev if c == 2]
-    classes = [1] * sum(c == 1 for c, _ in bev) + [0] * len(cutouts) + [2] * sum(c == 2 for c, _ in bev)
+    rings = [np.asarray(r, np.float64).reshape(-1, 2) for r in bev_rings]
     starts = np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
-    xy = np.concatenate(rings).astype(np.float32)
-    bbox = np.array([[*r.min(0), *r.max(0)] for r in rings], np.float32)
+    xy = np.concatenate(rings).astype(np.float32) if rings else np.zeros((0, 2), np.float32)
+    bbox = np.array([[*r.min(0), *r.max(0)] for r in rings], np.float32).reshape(-1, 4)
 
     head_arr = np.array(heads, np.float64).reshape(-1, 3)
     return StaticScene(
@@ -596,9 +636,9 @@ def build_static_scene(net_path: Path | str, network_sha256: str = "") -> Static
         head_yaw_rad=head_arr[:, 2].astype(np.float32),
         bev_xy_m=xy,
         bev_start=starts,
-        bev_class=np.array(classes, np.uint8),
+        bev_class=np.array(bev_classes, np.uint8),
         bev_bbox_m=bbox,
-        network_sha256=sha,
+        network_sha256=network_sha256,
     )
 
 
@@ -616,7 +656,7 @@ def _junction_depth(start: np.ndarray, fwd: np.ndarray, shape: np.ndarray) -> fl
     return float(inter.length) if not inter.is_empty else 0.0
 
 
-def _add_signal(b: _Builder, k: int, x: float, y: float, facing_rad: float) -> None:
+def _add_signal(b: MeshBuilder, k: int, x: float, y: float, facing_rad: float) -> None:
     """Pole, head and three lamps (red on top) facing `facing_rad`; lamp tags 3k..3k+2."""
     pole = boxes_triangles(
         np.array([[x, y, POLE_HEIGHT_M / 2]]),
@@ -635,15 +675,18 @@ def _add_signal(b: _Builder, k: int, x: float, y: float, facing_rad: float) -> N
         z = HEAD_BOTTOM_M + h * (5 - 2 * slot) / 6
         c = np.array([hx, hy]) + f * (d / 2 + 0.01)
         lamp = boxes_triangles(
-            np.array([[c[0], c[1], z]]), np.array([[0.02, LAMP_SIZE_M, LAMP_SIZE_M]]),
-            np.array([facing_rad]), faces=np.array([0, 1]),
+            np.array([[c[0], c[1], z]]),
+            np.array([[0.02, LAMP_SIZE_M, LAMP_SIZE_M]]),
+            np.array([facing_rad]),
+            faces=np.array([0, 1]),
         )[0]
         b.add(lamp, Material.LAMP, tag=3 * k + slot)
 
 
-def _add_stop_sign(b: _Builder, x: float, y: float, facing_rad: float) -> None:
+def _add_stop_sign(b: MeshBuilder, x: float, y: float, facing_rad: float) -> None:
     post = boxes_triangles(
-        np.array([[x, y, SIGN_POST_HEIGHT_M / 2]]), np.array([[0.08, 0.08, SIGN_POST_HEIGHT_M]]),
+        np.array([[x, y, SIGN_POST_HEIGHT_M / 2]]),
+        np.array([[0.08, 0.08, SIGN_POST_HEIGHT_M]]),
         np.array([facing_rad]),
     )[0]
     b.add(post, Material.POLE)
@@ -699,7 +742,13 @@ def _add_buildings(b, edges, pairs, occ_tree, furniture, rng) -> None:
                     o1 = c + n * off
                     cand.append(np.array([o0, o1, o1 + n * depth, o0 + n * depth]))
                     u = rng.random()
-                    h = rng.uniform(5, 12) if u < 0.6 else rng.uniform(12, 28) if u < 0.95 else rng.uniform(28, 50)
+                    h = (
+                        rng.uniform(5, 12)
+                        if u < 0.6
+                        else rng.uniform(12, 28)
+                        if u < 0.95
+                        else rng.uniform(28, 50)
+                    )
                     heights.append(float(h))
                 depth0 += depth + float(rng.uniform(2.0, 6.0))
     if not cand:
@@ -745,24 +794,33 @@ def _add_buildings(b, edges, pairs, occ_tree, furniture, rng) -> None:
             walls.append(np.stack([lo[:, e], lo[:, f], hi[:, f]], 1))
             walls.append(np.stack([lo[:, e], hi[:, f], hi[:, e]], 1))
         walls = np.stack(walls, 1)  # (B, 8, 3, 3)
-        roof = np.stack([np.stack([hi[:, 0], hi[:, 1], hi[:, 2]], 1),
-                         np.stack([hi[:, 0], hi[:, 2], hi[:, 3]], 1)], 1)
+        roof = np.stack(
+            [
+                np.stack([hi[:, 0], hi[:, 1], hi[:, 2]], 1),
+                np.stack([hi[:, 0], hi[:, 2], hi[:, 3]], 1),
+            ],
+            1,
+        )
         b.add(walls.reshape(-1, 3, 3), Material.BUILDING, rgb=np.repeat(facade, 8, 0))
         b.add(roof.reshape(-1, 3, 3), Material.BUILDING, rgb=ROOF_RGB)
     if trees:
         t = np.array(trees)
         n = len(t)
         trunk = boxes_triangles(
-            np.concatenate([t, np.full((n, 1), 1.25)], 1), np.tile([0.35, 0.35, 2.5], (n, 1)),
+            np.concatenate([t, np.full((n, 1), 1.25)], 1),
+            np.tile([0.35, 0.35, 2.5], (n, 1)),
             rng.uniform(0, np.pi, n),
         )
         size = rng.uniform(2.5, 4.5, n)
         canopy = boxes_triangles(
             np.concatenate([t, (2.3 + size / 2)[:, None]], 1),
-            np.stack([size, size, size * 0.9], 1), rng.uniform(0, np.pi, n),
+            np.stack([size, size, size * 0.9], 1),
+            rng.uniform(0, np.pi, n),
         )
         b.add(trunk.reshape(-1, 3, 3), Material.VEGETATION, rgb=TRUNK_RGB)
-        green = np.clip(np.array(CANOPY_RGB) * rng.uniform(0.8, 1.2, (n, 1)), 0, 255).astype(np.uint8)
+        green = np.clip(np.array(CANOPY_RGB) * rng.uniform(0.8, 1.2, (n, 1)), 0, 255).astype(
+            np.uint8
+        )
         b.add(canopy.reshape(-1, 3, 3), Material.VEGETATION, rgb=np.repeat(green, 12, 0))
 
 
@@ -795,7 +853,9 @@ def load_static_scene(net_path: Path | str, cache_dir: Path | None = None) -> St
         try:
             with np.load(path, allow_pickle=False) as z:
                 scene = StaticScene(
-                    **{f.name: z[f.name] for f in fields(StaticScene) if f.name != "network_sha256"},
+                    **{
+                        f.name: z[f.name] for f in fields(StaticScene) if f.name != "network_sha256"
+                    },
                     network_sha256=sha,
                 )
         except (OSError, ValueError, KeyError):
@@ -804,7 +864,14 @@ def load_static_scene(net_path: Path | str, cache_dir: Path | None = None) -> St
         scene = build_static_scene(net_path, sha)
         cache.mkdir(parents=True, exist_ok=True)
         part = path.with_name(f".{path.stem}.{os.getpid()}.part.npz")
-        np.savez(part, **{f.name: getattr(scene, f.name) for f in fields(StaticScene) if f.name != "network_sha256"})
+        np.savez(
+            part,
+            **{
+                f.name: getattr(scene, f.name)
+                for f in fields(StaticScene)
+                if f.name != "network_sha256"
+            },
+        )
         os.replace(part, path)
     _loaded.clear()  # one town per worker at a time keeps memory flat
     _loaded[key] = scene
@@ -834,70 +901,78 @@ class ActorMesh:
     actor: np.ndarray
 
 
-def _parts(agent: AgentState) -> list[tuple[tuple, tuple, tuple, Material]]:
-    """Boxes of one agent in its own frame: ((cx, cy, cz), (sx, sy, sz), rgb, material)."""
+def _parts(agent: AgentState) -> list[tuple]:
+    """Boxes of one agent in its own frame (x forward, z up from the ground):
+    ((cx, cy, cz), (sx, sy, sz), side rgb, top rgb, material)."""
     L, W, H = agent.length_m, agent.width_m, agent.height_m
     if agent.cls == "pedestrian":
         shirt = tuple(CLOTHES[_stable_index(agent.track_id, len(CLOTHES))])
+        m = Material.PEDESTRIAN
         return [
-            ((0, 0, 0.24 * H), (0.7 * L, 0.8 * W, 0.48 * H), TROUSERS_RGB, Material.PEDESTRIAN),
-            ((0, 0, 0.665 * H), (L, W, 0.37 * H), shirt, Material.PEDESTRIAN),
-            ((0, 0, 0.925 * H), (0.5 * W, 0.5 * W, 0.15 * H), SKIN_RGB, Material.PEDESTRIAN),
+            ((0, 0, 0.24 * H), (0.7 * L, 0.8 * W, 0.48 * H), TROUSERS_RGB, TROUSERS_RGB, m),
+            ((0, 0, 0.665 * H), (L, W, 0.37 * H), shirt, shirt, m),
+            ((0, 0, 0.925 * H), (0.5 * W, 0.5 * W, 0.15 * H), SKIN_RGB, SKIN_RGB, m),
         ]
     paint = tuple(CAR_PAINTS[_stable_index(agent.track_id, len(CAR_PAINTS))])
+    m = Material.VEHICLE
     if agent.cls == "bicycle":
         shirt = tuple(CLOTHES[_stable_index(agent.track_id, len(CLOTHES))])
         return [
-            ((0, 0, 0.5), (L, 0.12, 0.7), paint, Material.VEHICLE),
-            ((-0.1 * L, 0, 0.55 * H + 0.05), (0.35, 0.45, 0.45 * H - 0.2), shirt, Material.VEHICLE),
-            ((-0.1 * L, 0, H - 0.12), (0.22, 0.22, 0.24), SKIN_RGB, Material.VEHICLE),
+            ((0, 0, 0.45), (L, 0.12, 0.9), TYRE_RGB, paint, m),
+            ((-0.1 * L, 0, 0.55 * H + 0.05), (0.35, 0.45, 0.45 * H - 0.2), shirt, shirt, m),
+            ((-0.1 * L, 0, H - 0.12), (0.22, 0.22, 0.24), SKIN_RGB, SKIN_RGB, m),
         ]
-    wheel_r = 0.33 if H < 2.2 else 0.5
-    wheels = [
-        ((sx * (0.5 * L - 0.9 * wheel_r - 0.25), sy * (0.5 * W - 0.12), wheel_r),
-         (2 * wheel_r, 0.24, 2 * wheel_r), TYRE_RGB, Material.VEHICLE)
-        for sx in (1, -1) for sy in (1, -1)
-    ]
-    if H < 2.2:  # car: body and glass cabin
-        body_top = 0.58 * H
-        return [
-            ((0, 0, (0.3 + body_top) / 2), (L, W, body_top - 0.3), paint, Material.VEHICLE),
-            ((-0.06 * L, 0, (body_top + H) / 2), (0.5 * L, 0.9 * W, H - body_top), GLASS_RGB, Material.VEHICLE),
-            ((-0.06 * L, 0, H - 0.02), (0.48 * L, 0.88 * W, 0.05), paint, Material.VEHICLE),
-            *wheels,
+    under = 0.3 if H < 2.2 else 0.45  # a dark band for the wheels and the underbody
+    parts = [((0, 0, under / 2), (0.8 * L, 0.94 * W, under), TYRE_RGB, TYRE_RGB, m)]
+    if H < 2.2:  # car: body, and a glass cabin with a painted roof
+        top = 0.58 * H
+        parts += [
+            ((0, 0, (under + top) / 2), (L, W, top - under), paint, paint, m),
+            ((-0.06 * L, 0, (top + H) / 2), (0.5 * L, 0.9 * W, H - top), GLASS_RGB, paint, m),
         ]
-    # van, truck, bus: one tall body with a windscreen band
-    return [
-        ((0, 0, (0.45 + H) / 2), (L, W, H - 0.45), paint, Material.VEHICLE),
-        ((0.5 * L - 0.05, 0, 0.72 * H), (0.12, 0.92 * W, 0.3 * H), GLASS_RGB, Material.VEHICLE),
-        *wheels,
-    ]
+    else:  # van, truck, bus: one tall body with a windscreen
+        parts += [
+            ((0, 0, (under + H) / 2), (L, W, H - under), paint, paint, m),
+            ((0.5 * L - 0.04, 0, 0.72 * H), (0.1, 0.92 * W, 0.3 * H), GLASS_RGB, GLASS_RGB, m),
+        ]
+    return parts
 
 
 def actor_mesh(agents: Sequence[AgentState]) -> ActorMesh:
-    """Oriented boxes for every agent (vehicles: body, glass cabin, wheels; people: legs, torso,
-    head), coloured per actor (a stable colour from its track id)."""
-    centres, sizes, yaws, rgbs, mats, owner = [], [], [], [], [], []
+    """Oriented boxes for every agent (vehicles: wheel band, body, glass cabin; people: legs,
+    torso, head), coloured per actor (a stable colour from its track id)."""
+    centres, sizes, yaws, side, top, mats, owner = [], [], [], [], [], [], []
     for k, a in enumerate(agents):
         c, s = math.cos(a.pose.yaw_rad), math.sin(a.pose.yaw_rad)
-        for (px, py, pz), size, rgb, mat in _parts(a):
+        for (px, py, pz), size, rgb_side, rgb_top, mat in _parts(a):
             centres.append((a.pose.x_m + c * px - s * py, a.pose.y_m + s * px + c * py, pz))
             sizes.append(size)
             yaws.append(a.pose.yaw_rad)
-            rgbs.append(rgb)
+            side.append(rgb_side)
+            top.append(rgb_top)
             mats.append(int(mat))
             owner.append(k)
     if not centres:
         z = np.zeros((0, 3), np.float32)
-        return ActorMesh(np.zeros((0, 3, 3), np.float32), z, np.zeros((0, 3), np.uint8),
-                         np.zeros(0, np.uint8), np.zeros(0, np.int32))
+        return ActorMesh(
+            np.zeros((0, 3, 3), np.float32),
+            z,
+            np.zeros((0, 3), np.uint8),
+            np.zeros(0, np.uint8),
+            np.zeros(0, np.int32),
+        )
     tris = boxes_triangles(np.array(centres), np.array(sizes), np.array(yaws))  # (B, 12, 3, 3)
     n = tris.shape[1]
+    colour = np.where(
+        BOX_FACE_TOP[None, :, None],
+        np.array(top, np.uint8)[:, None],
+        np.array(side, np.uint8)[:, None],
+    )  # (B, 12, 3)
     tris = tris.reshape(-1, 3, 3)
     return ActorMesh(
         triangles_m=tris.astype(np.float32),
         normals=triangle_normals(tris),
-        colour_rgb=np.repeat(np.array(rgbs, np.uint8), n, 0),
+        colour_rgb=colour.reshape(-1, 3),
         material=np.repeat(np.array(mats, np.uint8), n),
         actor=np.repeat(np.array(owner, np.int32), n),
     )
@@ -919,19 +994,39 @@ def _embree_device():
     return _device
 
 
+def _embree_scene(triangles_m: np.ndarray):
+    """A committed embreex scene of (N, 3, 3) float32 triangles (primitive id = row)."""
+    from embreex import rtcore_scene
+    from embreex.mesh_construction import TriangleMesh
+
+    scene = rtcore_scene.EmbreeScene(_embree_device())
+    TriangleMesh(scene, np.ascontiguousarray(triangles_m, np.float32))
+    # embreex commits lazily on the first run(); commit now so the build is paid here.
+    scene.run(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32))
+    return scene
+
+
 @dataclass
 class FrameScene:
-    """One Embree scene holding the culled static triangles followed by the actor triangles.
+    """The scene of one frame: a static Embree scene (tiles around the ego, kept across frames)
+    and an actor scene (this frame's agents), cast in turn.
+
+    Primitive ids are unified: 0..n_static-1 are static triangles, n_static.. actor triangles.
 
     Attributes:
-        embree: the committed embreex scene (primitive ids index the arrays below).
+        static_embree, actor_embree: committed embreex scenes (actor_embree None: no agents).
         normals: (N, 3) float32; colour_rgb: (N, 3) uint8; material: (N,) uint8;
         tag: (N,) int32 lamp tags (-1 elsewhere); actor: (N,) int32 agent index, -1 if static.
         n_static: the first n_static primitives are static.
-        agents: the agents in the scene, in actor-index order.
+        agents: the agents in the actor scene, in actor-index order.
+        actor_centres_m: (A, 3) float64 world centres of the agents' bounding spheres.
+        actor_radii_m: (A,) float64 their radii (half the box diagonal).
+        ray_log: if a list, every Embree call appends (scene, query, origins, directions,
+            dists) to it (bench/frame.py replays them as bare Embree calls).
     """
 
-    embree: object
+    static_embree: object
+    actor_embree: object | None
     normals: np.ndarray
     colour_rgb: np.ndarray
     material: np.ndarray
@@ -939,100 +1034,171 @@ class FrameScene:
     actor: np.ndarray
     n_static: int
     agents: tuple[AgentState, ...]
+    actor_centres_m: np.ndarray
+    actor_radii_m: np.ndarray
+    ray_log: list | None = None
 
-    def cast(self, origins: np.ndarray, directions: np.ndarray, max_dist_m: float | np.ndarray):
+    def _run(self, scene, origins, directions, dists, query="INTERSECT", output=None):
+        if self.ray_log is not None:
+            self.ray_log.append((scene, query, origins, directions, dists.copy()))
+        return scene.run(origins, directions, dists=dists, query=query, output=output)
+
+    def cast(
+        self,
+        origins: np.ndarray,
+        directions: np.ndarray,
+        max_dist_m: float,
+        actor_rays: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """First hits of rays: (N, 3) float32 origins and unit directions, world frame.
 
-        Returns (dist_m (N,) float32, inf for no hit within max_dist_m; prim (N,) int32, -1 for
-        no hit)."""
+        Args:
+            actor_rays: indices of the rays that may hit an agent (the sensor knows from the
+                agents' bounding spheres); None: all. Only these are cast into the actor scene,
+                bounded by their static hit.
+        Returns:
+            dist_m (N,) float32 (inf: no hit within max_dist_m), prim (N,) int32 (-1: none).
+        """
         n = len(origins)
-        dists = np.broadcast_to(np.float32(max_dist_m), (n,)).astype(np.float32)
-        out = self.embree.run(origins, directions, dists=dists, output=1)
-        prim = out["primID"]
-        dist = out["tfar"]
+        dists = np.full(n, max_dist_m, np.float32)
+        out = self._run(self.static_embree, origins, directions, dists, output=1)
+        prim, dist = out["primID"], out["tfar"]
+        if self.actor_embree is not None:
+            idx = np.arange(n) if actor_rays is None else actor_rays
+            if len(idx):
+                a = self._run(
+                    self.actor_embree, origins[idx], directions[idx], dist[idx].copy(), output=1
+                )
+                hit = a["primID"] >= 0
+                prim[idx[hit]] = a["primID"][hit] + self.n_static
+                dist[idx[hit]] = a["tfar"][hit]
         dist[prim < 0] = np.inf
         return dist, prim
 
-    def occluded(self, origins: np.ndarray, directions: np.ndarray, max_dist_m: float) -> np.ndarray:
-        """(N,) bool: does anything lie along each ray within max_dist_m (shadow rays)."""
+    def distances(
+        self,
+        origins: np.ndarray,
+        directions: np.ndarray,
+        max_dist_m: float,
+        actor_rays: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Like `cast` but without the static primitive (a cheaper Embree query, what the
+        LiDAR needs): returns dist_m (N,) float32 (inf: no hit) and actor (N,) int32, the index
+        into `agents` of the agent hit first, -1 for static hits and misses."""
         n = len(origins)
         dists = np.full(n, max_dist_m, np.float32)
-        return self.embree.run(origins, directions, dists=dists, query="OCCLUDED") >= 0
+        dist = self._run(self.static_embree, origins, directions, dists, "DISTANCE")
+        dist = np.minimum(dist, np.float32(max_dist_m)).astype(np.float32)
+        actor = np.full(n, -1, np.int32)
+        if self.actor_embree is not None:
+            idx = np.arange(n) if actor_rays is None else actor_rays
+            if len(idx):
+                a = self._run(
+                    self.actor_embree, origins[idx], directions[idx], dist[idx].copy(), output=1
+                )
+                hit = a["primID"] >= 0
+                actor[idx[hit]] = self.actor[a["primID"][hit] + self.n_static]
+                dist[idx[hit]] = a["tfar"][hit]
+        dist[dist >= max_dist_m] = np.inf
+        return dist, actor
+
+    def occluded(
+        self,
+        origins: np.ndarray,
+        directions: np.ndarray,
+        max_dist_m: float,
+        actor_rays: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """(N,) bool: does anything lie along each ray within max_dist_m (shadow rays).
+
+        Args:
+            directions: (N, 3) float32, or (1, 3) for one direction shared by all rays.
+            actor_rays: indices of the rays that may pass an agent; None: all.
+        """
+        dists = np.full(len(origins), max_dist_m, np.float32)
+        hit = self._run(self.static_embree, origins, directions, dists, "OCCLUDED") >= 0
+        if self.actor_embree is not None:
+            idx = np.flatnonzero(~hit) if actor_rays is None else actor_rays[~hit[actor_rays]]
+            if len(idx):
+                d = np.full(len(idx), max_dist_m, np.float32)
+                dirs = directions if len(directions) == 1 else directions[idx]
+                a = self._run(self.actor_embree, origins[idx], dirs, d, "OCCLUDED")
+                hit[idx[a >= 0]] = True
+        return hit
 
 
 class SceneBuilder:
-    """Builds each frame's `FrameScene` from a static scene: culls tiles to the sensors' reach
-    (a circle of `lidar_range_m` around the ego and the camera's wedge out to `camera_range_m`),
-    adds the agents' boxes (never the ego's own) and commits one Embree scene."""
+    """Builds each frame's `FrameScene` from a static scene.
 
-    def __init__(
-        self,
-        static: StaticScene,
-        lidar_range_m: float,
-        camera_range_m: float,
-        camera_half_fov_rad: float,
-        camera_x_m: float = 0.0,
-    ):
+    The static Embree scene holds every tile within `reach_m` + REBUILD_M of the ego and is
+    rebuilt only when the ego has moved REBUILD_M from where it was built, so the sensors' reach
+    (`reach_m`: the longer of the LiDAR and camera ranges, plus the mounts' offset) is always
+    covered. The actor scene is built every frame from the agents within reach (never the ego).
+    """
+
+    REBUILD_M = 40.0
+
+    def __init__(self, static: StaticScene, reach_m: float):
         self.static = static
-        self.lidar_range_m = lidar_range_m
-        self.camera_range_m = camera_range_m
-        self.camera_half_fov_rad = camera_half_fov_rad
-        self.camera_x_m = camera_x_m
+        self.reach_m = reach_m
         self._centres = static.tile_centres_m()
-        self._margin = static.tile_reach_m  # every vertex of a tile lies this close to its centre
-        counts = np.diff(static.tile_start)
-        self._nonempty = counts > 0
-        self._key: bytes | None = None
-        self._culled = None
+        self._nonempty = np.diff(static.tile_start) > 0
+        self._built_at: np.ndarray | None = None
+        self._static = None
+        self.rebuilds = 0
 
-    def visible_tiles(self, pose: Pose) -> np.ndarray:
-        """Indices of the tiles that can hold a triangle the sensors reach from `pose`."""
-        d = self._centres - (pose.x_m, pose.y_m)
+    def visible_tiles(self, xy_m: np.ndarray, radius_m: float) -> np.ndarray:
+        """Indices of the non-empty tiles holding a triangle within radius_m of xy_m."""
+        d = self._centres - xy_m
         r = np.hypot(d[:, 0], d[:, 1])
-        m = self._margin
-        lidar = r <= self.lidar_range_m + m
-        c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
-        fwd = c * d[:, 0] + s * d[:, 1] - self.camera_x_m
-        lat = np.abs(-s * d[:, 0] + c * d[:, 1])
-        t = math.tan(self.camera_half_fov_rad)
-        cam = (
-            (r <= self.camera_range_m + m)
-            & (fwd >= -m)
-            & (lat <= np.maximum(fwd, 0) * t + m / math.cos(self.camera_half_fov_rad))
-        )
-        return np.flatnonzero((lidar | cam) & self._nonempty)
+        return np.flatnonzero((r <= radius_m + self.static.tile_reach_m) & self._nonempty)
 
     def _static_part(self, pose: Pose):
-        tiles = self.visible_tiles(pose)
-        key = tiles.tobytes()
-        if key != self._key:
+        xy = np.array([pose.x_m, pose.y_m])
+        if self._built_at is None or np.hypot(*(xy - self._built_at)) > self.REBUILD_M:
             st = self.static
+            tiles = self.visible_tiles(xy, self.reach_m + self.REBUILD_M)
             starts, ends = st.tile_start[tiles], st.tile_start[tiles + 1]
             lens = ends - starts
             idx = np.repeat(starts - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens)
             idx += np.arange(int(lens.sum()))
-            self._culled = (
-                st.triangles_m[idx], st.normals[idx], st.colour_rgb[idx], st.material[idx], st.tag[idx]
+            self._static = (
+                _embree_scene(st.triangles_m[idx]),
+                st.normals[idx],
+                st.colour_rgb[idx],
+                st.material[idx],
+                st.tag[idx],
             )
-            self._key = key
-        return self._culled
+            self._built_at = xy
+            self.rebuilds += 1
+        return self._static
 
     def build(self, frame: FrameState) -> FrameScene:
-        from embreex import rtcore_scene
-        from embreex.mesh_construction import TriangleMesh
-
-        tris, normals, colour, material, tag = self._static_part(frame.ego.pose)
-        actors = actor_mesh(frame.agents)
-        scene = rtcore_scene.EmbreeScene(_embree_device())
-        TriangleMesh(scene, np.concatenate([tris, actors.triangles_m]))
-        n_dyn = len(actors.triangles_m)
+        embree, normals, colour, material, tag = self._static_part(frame.ego.pose)
+        ex, ey = frame.ego.pose.x_m, frame.ego.pose.y_m
+        agents = tuple(
+            a
+            for a in frame.agents
+            if math.hypot(a.pose.x_m - ex, a.pose.y_m - ey) <= self.reach_m + a.length_m
+        )
+        actors = actor_mesh(agents)
+        centres = np.array(
+            [(a.pose.x_m, a.pose.y_m, a.height_m / 2) for a in agents], np.float64
+        ).reshape(-1, 3)
+        radii = np.array(
+            [0.5 * math.sqrt(a.length_m**2 + a.width_m**2 + a.height_m**2) for a in agents]
+        )
+        n_static, n_dyn = len(normals), len(actors.triangles_m)
         return FrameScene(
-            embree=scene,
+            static_embree=embree,
+            actor_embree=_embree_scene(actors.triangles_m) if n_dyn else None,
             normals=np.concatenate([normals, actors.normals]),
             colour_rgb=np.concatenate([colour, actors.colour_rgb]),
             material=np.concatenate([material, actors.material]),
             tag=np.concatenate([tag, np.full(n_dyn, -1, np.int32)]),
-            actor=np.concatenate([np.full(len(tris), -1, np.int32), actors.actor]),
-            n_static=len(tris),
-            agents=tuple(frame.agents),
+            actor=np.concatenate([np.full(n_static, -1, np.int32), actors.actor]),
+            n_static=n_static,
+            agents=agents,
+            actor_centres_m=centres,
+            actor_radii_m=radii,
         )

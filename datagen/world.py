@@ -934,11 +934,12 @@ class World:
         st.reasons[reason] = st.reasons.get(reason, 0) + 1
         st.distance_m += v1 * dt
         st.speed_sum += v1
-        if reason == "vehicle" and v1 > 2.0:  # following: the time gap actually kept
+        if reason == "vehicle" and v1 > 2.0:  # steady following: the time gap actually kept
             lead = ls.vehicle.getLeader(EGO_ID, 100.0)
-            if lead and lead[0]:
-                st.gap_sum_s += (lead[1] + 1.0) / v1
-                st.gap_n += 1
+            if lead and lead[0] and lead[0] in self._context:
+                if abs(self._context[lead[0]][ls.VAR_SPEED] - v1) < 1.0:
+                    st.gap_sum_s += (lead[1] + 1.0) / v1  # + the ego vType's minGap
+                    st.gap_n += 1
         self._sense()
         # standing still too long (not at a red light) ends the episode
         if v1 < expert.STOPPED_MPS and self._light != "red":
@@ -1129,8 +1130,12 @@ class World:
 
     @property
     def stats(self) -> dict:
-        """Episode statistics: collisions (of the ego), red_light_violations, teleports (all
-        vehicles), hard_brakes, mean speed and time gap, sim/wall seconds, reasons per step."""
+        """Episode statistics: collisions (of the ego; other_collisions between other road
+        users, each pair once), red_light_violations (ego entered a junction on red),
+        teleports (all vehicles), hard_brakes (steps braking harder than any command: SUMO's
+        safety braking), mean_speed_mps, mean_time_gap_s (bumper gap / speed while steadily
+        following a lead, None if never), sim/wall seconds, steps per expert reason, and how
+        the episode ended."""
         st = self._stats
         return {
             "steps": st.steps,

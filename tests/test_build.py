@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pandas as pd
 import pyarrow as pa
+import pyarrow.dataset as ds
 import pytest
 
 import schemas
@@ -266,3 +267,133 @@ def test_ctrl_c_stops_cleanly_and_the_rerun_finishes(tmp_path):
     fake_build(out)
     fake_build(tmp_path / "ref")
     assert _content(out) == _content(tmp_path / "ref")
+
+
+# --------------------------------------------------------------------------------------------
+# Real episodes through the `datagen` command (SUMO, ray-cast sensors)
+
+SMALL = ["--town", "grid_small", "--town", "downtown", "--frames", "160", "--seed", "3"]
+SMALL += ["--episode-seconds", "20"]  # 4 weathers x 2 towns = 8 episodes of 20 frames
+
+
+def datagen(*args, check=True, **kw) -> subprocess.CompletedProcess:
+    proc = subprocess.run(
+        [sys.executable, "-m", "datagen.cli", *map(str, args)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        **kw,
+    )
+    if check:
+        assert proc.returncode == 0, proc.stderr
+    return proc
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory) -> Path:
+    """The reference build: two towns, 160 frames, --workers 2."""
+    out = tmp_path_factory.mktemp("small") / "data"
+    proc = datagen("build", *SMALL, "--workers", "2", "--out", out)
+    assert "grid_small" in proc.stdout and "episodes ended early" in proc.stdout
+    return out
+
+
+def test_small_build_is_read_by_pandas_pyarrow_and_validate(small):
+    manifest = json.loads((small / build.MANIFEST).read_text())
+    stats = manifest["statistics"]
+    assert manifest["status"] == "complete" and stats["frames"] == 160
+    df = pd.read_parquet(small)
+    assert len(df) == 160 and list(df.columns) == list(schemas.COLUMNS)
+    assert not df.duplicated(["episode_id", "frame"]).any()
+    cells = df.groupby(["town", "weather"]).size()
+    assert {f"{t}/{w}": n for (t, w), n in cells.items()} == stats["frames_by_town_weather"]
+    assert df.groupby("town").size().to_dict() == stats["frames_by_town"]
+    assert df.groupby("weather").size().to_dict() == stats["frames_by_weather"]
+    dataset = ds.dataset(small, format="parquet")
+    assert dataset.count_rows() == 160
+    assert sorted(dataset.to_table(columns=["town"]).column("town").unique().to_pylist()) == [
+        "downtown",
+        "grid_small",
+    ]
+    for path in small.glob("*/*.parquet"):
+        schemas.check_version(ds.dataset(path).schema.metadata)
+    assert datagen("validate", small).stdout.startswith("ok: 8 shard(s), 160 frames")
+
+
+def test_sigkill_mid_build_then_rerun_equals_the_uninterrupted_build(small, tmp_path):
+    out = tmp_path / "data"
+    cmd = [sys.executable, "-m", "datagen.cli", "build", *SMALL, "--workers", "2"]
+    proc = subprocess.Popen(
+        [*cmd, "--out", str(out)],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+    )
+    _wait_for_shards(out, 2, proc, timeout_s=120)
+    os.killpg(proc.pid, signal.SIGKILL)  # the build and its workers, mid-episode
+    proc.wait()
+    assert len(list(out.glob("*/*.parquet"))) < 8
+    datagen("build", *SMALL, "--workers", "2", "--out", out)
+    keys = pd.read_parquet(out, columns=["episode_id", "frame"])
+    ref = pd.read_parquet(small, columns=["episode_id", "frame"])
+    assert not keys.duplicated().any()
+    assert set(map(tuple, keys.to_numpy())) == set(map(tuple, ref.to_numpy()))
+    assert _content(out) == _content(small)  # byte for byte, manifest included
+
+
+def test_different_arguments_into_a_built_directory_are_refused(small):
+    args = [("80" if a == "160" else a) for a in SMALL]
+    proc = datagen("build", *args, "--out", small, check=False)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == [
+        f"datagen build: error: {small} was built with different arguments (frames: 160 != 80); "
+        "use --force to replace it, or choose another --out"
+    ]
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--net", "/nonexistent/city.net.xml"], "--net /nonexistent/city.net.xml: no such file"),
+        (["--net", ROOT / "README.md"], "README.md"),
+        (["--frames", "0"], "--frames must be at least 1, got 0"),
+        (["--town", "atlantis"], "unknown town 'atlantis'"),
+        (["--towns", "9"], "--towns must be between 1 and 8"),
+        (["--weather-mix", "sunny=-1"], "--weather-mix: weight of sunny must be >= 0"),
+    ],
+)
+def test_bad_input_is_a_one_line_error(tmp_path, args, message):
+    proc = datagen("build", *args, "--out", tmp_path / "data", check=False)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("datagen build: error: "), proc.stderr
+    assert message in lines[0]
+
+
+def test_validate_reports_a_corrupt_shard_on_one_line(small, tmp_path):
+    import shutil
+
+    copy = tmp_path / "data"
+    shutil.copytree(small, copy)
+    shard = sorted(copy.glob("*/*.parquet"))[3]
+    shard.write_bytes(shard.read_bytes()[: shard.stat().st_size // 2])
+    proc = datagen("validate", copy, check=False)
+    assert proc.returncode == 1
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"{shard.relative_to(copy)}: not a readable")
+    missing = datagen("validate", tmp_path / "nope", check=False)
+    assert missing.returncode == 2
+    assert (
+        missing.stderr.strip()
+        == f"datagen validate: error: {tmp_path / 'nope'}: no such file or directory"
+    )
+
+
+def test_ray_build_on_a_local_instance_equals_the_process_build(small, tmp_path):
+    pytest.importorskip("ray", reason="ray is not installed (pip install 'iidsu[ray]')")
+    out = tmp_path / "data"
+    proc = datagen("build", *SMALL, "--workers", "2", "--executor", "ray", "--out", out)
+    assert "grid_small" in proc.stdout
+    assert _content(out) == _content(small)

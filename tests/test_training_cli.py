@@ -80,6 +80,7 @@ def _bad(tmp_path: Path, run) -> dict[str, tuple[list[str], str]]:
             ["fit", "--resume", "--out", str(tmp_path / "fresh")],
             "no such checkpoint",
         ),
+        "resume done": (["fit", "--resume", "--out", str(out)], "has finished 1 of 1 epochs"),
         "resume change": (
             ["fit", "--resume", "--out", str(out), "--lr", "0.5"],
             "--lr: cannot change on --resume",
@@ -104,6 +105,7 @@ def _bad(tmp_path: Path, run) -> dict[str, tuple[list[str], str]]:
         "junk checkpoint",
         "frame range",
         "resume nothing",
+        "resume done",
         "resume change",
         "unknown town",
         "unknown command",

@@ -115,10 +115,11 @@ def split(
 
 
 def _row_arrays(table: pa.Table) -> dict:
-    """Columns of a decoded row group as numpy / Python lists, boxes as flat arrays + offsets."""
+    """Columns of a (non-empty) row group as numpy arrays or Python lists; boxes as flat arrays
+    of their fields with each row's start offset."""
     table = table.combine_chunks()
     n = table.num_rows
-    col = {name: table.column(name).chunk(0) if n else None for name in COLUMNS}
+    col = {name: table.column(name).chunk(0) for name in COLUMNS}
     out = {name: col[name].to_pylist() for name in ("episode_id", "weather", "traffic_light")}
     out.update({name: col[name].to_pylist() for name in ("image", "lidar_bev", "bev_semantic")})
     out["frame"] = col["frame"].to_numpy()

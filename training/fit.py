@@ -187,11 +187,11 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
     stream = data.FrameStream(
         index[~is_val],
         model_cfg.output_px,
-        True,
-        cfg.seed,
-        cfg.shuffle_buffer,
-        proc.rank,
-        proc.world,
+        shuffle=True,
+        seed=cfg.seed,
+        buffer_size=cfg.shuffle_buffer,
+        rank=proc.rank,
+        world=proc.world,
     )
     val_stream = data.FrameStream(
         index[is_val], model_cfg.output_px, rank=proc.rank, world=proc.world
@@ -210,6 +210,11 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
     optimizer = make_optimizer(model, cfg)
     first_epoch, step = 0, 0
     if state is not None:
+        if state["epoch"] >= cfg.epochs:
+            raise UserError(
+                f"{out / CHECKPOINT} has finished {state['epoch']} of {cfg.epochs} epochs; "
+                "give a larger --epochs to train on"
+            )
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         first_epoch, step = state["epoch"], state["step"]

@@ -1,0 +1,158 @@
+"""Training throughput of the II-DSU trainer: prints figures, asserts nothing.
+
+    python bench/train.py              # ~1 minute on a 2-core laptop
+    python bench/train.py --steps 50   # longer, steadier timings
+
+1. tiny config on the CPU: training samples/s (forward, backward, AdamW step on an in-memory
+   batch) and the process's peak resident memory;
+2. the loader: decoded samples/s with 0, 1 and 2 DataLoader workers, per worker, at the tiny
+   (R = 64) and paper (R = 256) target resolutions, on synthetic shards (noise images: JPEG
+   decoding is slower than for real camera frames, so these are lower bounds);
+3. `train fit --config tiny --epochs 1` end to end on 200 synthetic frames (the demo's size);
+4. the paper config's parameter count, and where CUDA is available, its training samples/s and
+   peak GPU memory in bf16 on the GPU (compare with the loader's samples/s per worker to see how
+   many workers keep the GPU fed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests.synthetic
+
+import pyarrow.parquet as pq  # noqa: E402
+
+from tests.synthetic import synthetic_table  # noqa: E402
+from training import data, fit  # noqa: E402
+from training.config import PRESETS  # noqa: E402
+from training.losses import compute_losses  # noqa: E402
+from training.model import IIDSU, INPUTS  # noqa: E402
+
+WEATHERS = ("sunny", "cloudy", "rainy", "foggy")
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: kB
+
+
+def write_shards(root: Path, episodes: int, frames: int) -> Path:
+    for e in range(episodes):
+        town = f"town{e % 2}"
+        (root / town).mkdir(parents=True, exist_ok=True)
+        table = synthetic_table(frames, f"{town}-0-{e}", town, WEATHERS[e % 4], seed=e)
+        pq.write_table(table, root / town / f"{town}-0-{e}.parquet", row_group_size=16)
+    return root
+
+
+def batch_of(root: Path, output_px: int, batch_size: int, device: torch.device) -> dict:
+    stream = data.FrameStream(data.scan(root).iloc[:batch_size], output_px)
+    batch = next(iter(data.make_loader(stream, batch_size, 0)))
+    return fit.to_device(batch, device)
+
+
+def train_rate(preset: str, batch: dict, device: torch.device, steps: int) -> float:
+    """Training samples/s of `preset` on `batch` (bf16 autocast on CUDA, as `train fit`)."""
+    model_cfg, train_cfg = PRESETS[preset]
+    torch.manual_seed(0)
+    model = IIDSU(model_cfg).to(device, memory_format=torch.channels_last)
+    optimizer = fit.make_optimizer(model, train_cfg)
+    cuda = device.type == "cuda"
+    autocast = (
+        torch.autocast("cuda", dtype=torch.bfloat16)
+        if cuda
+        else torch.autocast("cpu", enabled=False)
+    )
+
+    def step():
+        with autocast:
+            out = model(*(batch[k] for k in INPUTS))
+        loss = compute_losses(out, batch, train_cfg)["total"]
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+
+    for _ in range(3):  # warm-up: allocator, oneDNN / cuDNN algorithm choice
+        step()
+    if cuda:
+        torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        step()
+    if cuda:
+        torch.cuda.synchronize()
+    return steps * len(batch["speed"]) / (time.perf_counter() - t0)
+
+
+def loader_rate(root: Path, output_px: int, workers: int, n: int) -> float:
+    index = data.scan(root).iloc[:n]
+    stream = data.FrameStream(index, output_px, shuffle=True, buffer_size=64)
+    loader = data.make_loader(stream, 8, workers)
+    t0 = time.perf_counter()
+    count = sum(len(b["speed"]) for b in loader)
+    return count / (time.perf_counter() - t0)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=20, help="timed training steps")
+    args = parser.parse_args()
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads")
+    with tempfile.TemporaryDirectory() as tmp:
+        root = write_shards(Path(tmp) / "shards", episodes=8, frames=25)  # 200 frames
+
+        tiny_model, tiny_train = PRESETS["tiny"]
+        rss0 = peak_rss_mb()
+        cpu = torch.device("cpu")
+        b = tiny_train.batch_size
+        rate = train_rate("tiny", batch_of(root, tiny_model.output_px, b, cpu), cpu, args.steps)
+        print(
+            f"\n1. tiny, CPU, batch {b}: {rate:.1f} training samples/s; peak RSS "
+            f"{peak_rss_mb():.0f} MB ({peak_rss_mb() - rss0:.0f} MB above the process before)"
+        )
+
+        print("\n2. loader (decode JPEG/PNG + render targets), samples/s:")
+        for R in (64, 256):
+            for workers in (0, 1, 2):
+                r = loader_rate(root, R, workers, n=120)
+                print(
+                    f"   R={R:<3}  workers={workers}: {r:6.1f}  ({r / max(workers, 1):.1f} per worker)"
+                )
+
+        import dataclasses
+
+        cfg = dataclasses.replace(
+            tiny_train, shards=str(root), out=str(Path(tmp) / "run"), epochs=1
+        )
+        t0 = time.perf_counter()
+        fit.fit(tiny_model, cfg, device="cpu")
+        print(
+            f"\n3. train fit --config tiny --epochs 1 on 200 frames: {time.perf_counter() - t0:.1f} s"
+        )
+
+        with torch.device("meta"):
+            n_params = sum(p.numel() for p in IIDSU(PRESETS["paper"][0]).parameters())
+        print(f"\n4. paper config: {n_params / 1e6:.2f} M parameters")
+        if torch.cuda.is_available():
+            gpu = torch.device("cuda")
+            paper_model, paper_train = PRESETS["paper"]
+            batch = batch_of(root, paper_model.output_px, paper_train.batch_size, gpu)
+            torch.cuda.reset_peak_memory_stats()
+            rate = train_rate("paper", batch, gpu, args.steps)
+            print(
+                f"   {torch.cuda.get_device_name()}, bf16, batch {paper_train.batch_size}: "
+                f"{rate:.1f} training samples/s; peak GPU memory "
+                f"{torch.cuda.max_memory_allocated() / 2**30:.1f} GiB"
+            )
+        else:
+            print("   GPU: not measured (no CUDA device)")
+
+
+if __name__ == "__main__":
+    main()

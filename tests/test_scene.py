@@ -1,0 +1,226 @@
+"""The static town mesh, its tiles and cache, actor boxes and the per-frame scene.
+
+Also holds the small fixtures the other sensor tests import: a hand-made flat scene, ego-frame
+agents and a 3x3 SUMO network with a signal, stop-controlled junctions and sidewalks.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from datagen import scene
+from datagen.scene import Material, MeshBuilder, SceneBuilder
+from datagen.state import AgentState, FrameState, Pose
+
+# ---------------------------------------------------------------------------- shared fixtures
+
+EGO_POSE = Pose(40.0, -20.0, 0.7)  # a non-trivial world pose: tests place things in its frame
+
+
+def agent_at(
+    track_id: str,
+    x_m: float,
+    y_m: float,
+    yaw_rad: float = 0.0,
+    cls: str = "vehicle",
+    dims: tuple[float, float, float] = (4.5, 1.8, 1.5),
+    speed_mps: float = 0.0,
+    ego: Pose = EGO_POSE,
+) -> AgentState:
+    """An agent whose box centre is at (x_m, y_m, yaw_rad) in the frame of `ego`."""
+    wx, wy = ego.world_from_ego(np.array([[x_m, y_m]]))[0]
+    pose = Pose(float(wx), float(wy), ego.yaw_rad + yaw_rad)
+    return AgentState(track_id, cls, pose, *dims, speed_mps)
+
+
+def frame_at(
+    ego: Pose = EGO_POSE,
+    agents: tuple[AgentState, ...] = (),
+    time_s: float = 0.0,
+    speed_mps: float = 0.0,
+    traffic_light: str = "none",
+    light_distance_m: float | None = None,
+) -> FrameState:
+    ego_state = AgentState("ego", "vehicle", ego, 4.7, 1.85, 1.5, speed_mps)
+    return FrameState(
+        time_s=time_s,
+        ego=ego_state,
+        agents=tuple(agents),
+        command="follow",
+        target_point_xy_m=(ego.x_m + 20 * math.cos(ego.yaw_rad), ego.y_m + 20 * math.sin(ego.yaw_rad)),
+        traffic_light=traffic_light,
+        light_distance_m=light_distance_m,
+        stop_sign=False,
+        stop_distance_m=None,
+        expert_reason="none",
+    )
+
+
+def flat_scene(
+    boxes: list[tuple[tuple[float, float, float], tuple[float, float, float], float]] = (),
+    road_half_m: float = 150.0,
+) -> scene.StaticScene:
+    """A square road (z = 0, drivable in the BEV) around EGO_POSE's origin, plus static boxes
+    ((x, y, z-centre) world, (sx, sy, sz), yaw) of material POLE."""
+    b = MeshBuilder()
+    c = np.array([EGO_POSE.x_m, EGO_POSE.y_m])
+    ring = c + np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * road_half_m
+    v = np.concatenate([ring, np.zeros((4, 1))], 1)
+    b.add(np.stack([v[[0, 1, 2]], v[[0, 2, 3]]]), Material.ROAD)
+    for centre, size, yaw in boxes:
+        tris = scene.boxes_triangles(np.array([centre]), np.array([size]), np.array([yaw]))[0]
+        b.add(tris, Material.POLE)
+    return scene.assemble_static_scene(b, [ring], [1], terrain=False)
+
+
+def build_test_network(path: Path) -> Path:
+    """A 3x3 grid, 100 m blocks: a signal in the middle, all-way and minor-road stops on the
+    west and east, two-lane east-west roads through the middle, sidewalks and crossings."""
+    from datagen.towns import build_plain_network
+
+    types = {(1, 1): "traffic_light", (0, 1): "allway_stop", (2, 1): "priority_stop"}
+    nodes = [
+        {"id": f"n{i}{j}", "x": 100 * i, "y": 100 * j, "type": types.get((i, j), "priority")}
+        for i in range(3)
+        for j in range(3)
+    ]
+    edges = []
+    for i in range(3):
+        for j in range(3):
+            for di, dj in ((1, 0), (0, 1)):
+                a, b = (i, j), (i + di, j + dj)
+                if b[0] > 2 or b[1] > 2:
+                    continue
+                for u, v in ((a, b), (b, a)):
+                    edges.append(
+                        {
+                            "id": f"e{u[0]}{u[1]}_{v[0]}{v[1]}",
+                            "from": f"n{u[0]}{u[1]}",
+                            "to": f"n{v[0]}{v[1]}",
+                            "numLanes": 2 if (j == 1 and dj == 0) else 1,
+                            "speed": 13.89,
+                            "priority": 3 if dj == 0 else 1,
+                        }
+                    )
+    return build_plain_network(nodes, edges, path)
+
+
+@pytest.fixture(scope="session")
+def test_net(tmp_path_factory) -> Path:
+    return build_test_network(tmp_path_factory.mktemp("net") / "grid3.net.xml")
+
+
+@pytest.fixture(scope="session")
+def test_net_scene(test_net) -> scene.StaticScene:
+    return scene.build_static_scene(test_net)
+
+
+# ---------------------------------------------------------------------------- tests
+
+
+def test_town_mesh_has_every_static_material(test_net_scene):
+    mats = set(np.unique(test_net_scene.material).tolist())
+    for m in (
+        Material.ROAD,
+        Material.MARKING,
+        Material.SIDEWALK,
+        Material.TERRAIN,
+        Material.BUILDING,
+        Material.POLE,
+        Material.SIGN,
+        Material.LAMP,
+    ):
+        assert m in mats, m.name
+    # one or two heads per signalised entry (4 entries at the middle node), lamps tagged
+    assert 4 <= len(test_net_scene.head_xy_m) <= 8
+    lamps = test_net_scene.tag[test_net_scene.material == Material.LAMP]
+    assert lamps.min() >= 0 and lamps.max() < 3 * len(test_net_scene.head_xy_m)
+
+
+def test_buildings_stay_off_roads_and_sidewalks(test_net_scene):
+    from schemas import BEV_SIZE_PX  # noqa: F401  (grid constants are exercised elsewhere)
+    from shapely import Point, Polygon
+    from shapely.strtree import STRtree
+
+    st = test_net_scene
+    rings = [st.bev_xy_m[st.bev_start[k] : st.bev_start[k + 1]] for k in range(len(st.bev_class))]
+    tree = STRtree([Polygon(r).buffer(0) for r in rings])
+    walls = st.triangles_m[st.material == Material.BUILDING]
+    base = walls.reshape(-1, 3)
+    base = base[base[:, 2] < 0.01][:, :2]
+    hits = tree.query([Point(p) for p in base], predicate="intersects")
+    assert hits.shape[1] == 0, "a building corner lies on a road, sidewalk or marking"
+
+
+def test_tiles_hold_their_triangles_within_reach(test_net_scene):
+    st = test_net_scene
+    centres = st.tile_centres_m()
+    tile_of = np.repeat(np.arange(len(centres)), np.diff(st.tile_start))
+    d = np.linalg.norm(st.triangles_m[..., :2] - centres[tile_of][:, None, :], axis=2).max(1)
+    assert (d <= st.tile_reach_m[tile_of] + 1e-3).all()
+
+
+def test_culling_keeps_everything_within_the_sensors_reach(test_net_scene):
+    st = test_net_scene
+    pose = Pose(130.0, 95.0, 0.3)
+    builder = SceneBuilder(st, reach_m=60.0)
+    tiles = builder.visible_tiles(np.array([pose.x_m, pose.y_m]), 60.0)
+    kept = np.zeros(st.n_triangles, bool)
+    for t in tiles:
+        kept[st.tile_start[t] : st.tile_start[t + 1]] = True
+    near = (np.linalg.norm(st.triangles_m[..., :2] - (pose.x_m, pose.y_m), axis=2) < 60.0).any(1)
+    assert kept[near].all()
+    assert kept.sum() < st.n_triangles  # and it does cull
+
+
+def test_static_scene_is_deterministic_and_cached(test_net, test_net_scene, tmp_path):
+    again = scene.build_static_scene(test_net)
+    np.testing.assert_array_equal(again.triangles_m, test_net_scene.triangles_m)
+    np.testing.assert_array_equal(again.colour_rgb, test_net_scene.colour_rgb)
+    first = scene.load_static_scene(test_net, cache_dir=tmp_path)
+    assert list(tmp_path.glob("*.npz")), "no cache file written"
+    scene._loaded.clear()
+    second = scene.load_static_scene(test_net, cache_dir=tmp_path)
+    for name in ("triangles_m", "material", "tile_start", "bev_xy_m", "head_xy_m"):
+        np.testing.assert_array_equal(getattr(first, name), getattr(second, name))
+
+
+@pytest.mark.parametrize("cls,dims", [("vehicle", (4.5, 1.8, 1.5)), ("vehicle", (12.0, 2.55, 3.2)),
+                                      ("pedestrian", (0.4, 0.5, 1.75)), ("bicycle", (1.7, 0.65, 1.7))])
+def test_actor_boxes_fill_the_agents_extent(cls, dims):
+    a = agent_at("a", 10.0, -3.0, 0.5, cls=cls, dims=dims)
+    mesh = scene.actor_mesh([a])
+    pts = mesh.triangles_m.reshape(-1, 3).astype(np.float64)
+    local = a.pose.ego_from_world(pts[:, :2])
+    L, W, H = dims
+    tol = 1e-3
+    assert local[:, 0].min() >= -L / 2 - tol and local[:, 0].max() <= L / 2 + tol
+    assert local[:, 1].min() >= -W / 2 - tol and local[:, 1].max() <= W / 2 + tol
+    assert pts[:, 2].min() >= -tol and pts[:, 2].max() <= H + tol
+    # it spans most of the box (no floating fragments far inside)
+    assert local[:, 0].max() - local[:, 0].min() > 0.6 * L
+    assert pts[:, 2].max() > 0.95 * H
+    assert (mesh.actor == 0).all()
+
+
+def test_frame_scene_excludes_the_ego_and_far_agents():
+    st = flat_scene()
+    near = agent_at("near", 10.0, 0.0)
+    far = agent_at("far", 400.0, 0.0)
+    fs = SceneBuilder(st, reach_m=100.0).build(frame_at(agents=(near, far)))
+    assert [a.track_id for a in fs.agents] == ["near"]
+    assert (fs.actor[: fs.n_static] == -1).all() and (fs.actor[fs.n_static :] == 0).all()
+
+
+def test_static_scene_is_reused_until_the_ego_moves_away():
+    st = flat_scene()
+    builder = SceneBuilder(st, reach_m=100.0)
+    builder.build(frame_at(Pose(EGO_POSE.x_m, EGO_POSE.y_m, 0.0)))
+    builder.build(frame_at(Pose(EGO_POSE.x_m + 10, EGO_POSE.y_m, 1.0)))
+    assert builder.rebuilds == 1
+    builder.build(frame_at(Pose(EGO_POSE.x_m + SceneBuilder.REBUILD_M + 1, EGO_POSE.y_m, 0.0)))
+    assert builder.rebuilds == 2
