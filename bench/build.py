@@ -84,6 +84,7 @@ def main() -> None:
     stage = dict(report.stage_s)
     busy = stage.get("episode_s", 0.0) + stage.get("write_s", 0.0)
     print("\nstage breakdown, worker-seconds summed over episodes (per frame in ms):")
+    cpu_s = stage.pop("cpu_s", 0.0)
     inner = {k: v for k, v in stage.items() if k not in ("episode_s", "write_s")}
     rows = [("run_episode (all stages below)", stage.get("episode_s", 0.0))]
     rows += [
@@ -93,6 +94,13 @@ def main() -> None:
     rows += [("idle / process start / scheduling", max(0.0, args.workers * wall_s - busy))]
     for name, s in rows:
         print(f"  {name:<36} {s:8.1f} s  {1000 * s / frames:7.1f} ms/frame")
+    print(
+        f"  {'CPU time in run_episode':<36} {cpu_s:8.1f} s  {1000 * cpu_s / frames:7.1f} ms/frame"
+        f"  -> {args.workers} idle cores: {args.workers * frames / max(cpu_s, 1e-9):.1f} frames/s"
+    )
+    load = os.getloadavg()[0]
+    if load > args.workers + 0.5:
+        print(f"  (load average {load:.1f}: the machine was shared, wall times include waiting)")
 
     print("\npeak memory per worker process (ru_maxrss):")
     for key, mb in sorted(report.peak_rss_mb.items()):

@@ -5,8 +5,8 @@
 
 Prints per episode and in total: simulated seconds per wall second (the World's own stepping,
 expert included, recorded at 2 Hz), wall milliseconds per recorded frame, mean ego speed and
-mean time gap per behaviour profile, ego collisions, red-light violations, teleports and how
-episodes ended. Conditions are drawn as `datagen build` draws them (behaviour.draw_condition).
+median time gap while following per behaviour profile, ego collisions, red-light violations,
+teleports and how episodes ended. Conditions are drawn as `datagen build` draws them (behaviour.draw_condition).
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
             print(
                 f"{i:3d} {town:12s} {behaviour:10s} frames={frames:4d} "
                 f"sim/wall={row['sim_per_wall']:6.1f} ms/frame={row['ms_per_frame']:5.2f} "
-                f"v={st['mean_speed_mps']:5.2f} gap={st['mean_time_gap_s'] or float('nan'):5.2f} "
+                f"v={st['mean_speed_mps']:5.2f} gap={st['median_time_gap_s'] or float('nan'):5.2f} "
                 f"coll={st['collisions']} rlv={st['red_light_violations']} "
                 f"tele={st['teleports']} end={st['ended']} {st['end_detail']}",
                 flush=True,
@@ -84,11 +84,13 @@ def main(argv: list[str] | None = None) -> int:
     for r in rows:
         by[r["behaviour"]].append(r)
     for b, rs in sorted(by.items()):
-        gaps = [r["mean_time_gap_s"] for r in rs if r["mean_time_gap_s"] is not None]
+        # per-episode medians weighted by how long each episode followed a lead
+        gaps = [(r["median_time_gap_s"], r["following_s"]) for r in rs if r["following_s"] > 0]
+        gap = sum(g * w for g, w in gaps) / sum(w for _, w in gaps) if gaps else float("nan")
         print(
             f"  {b:10s} episodes {len(rs):3d}  mean ego speed "
-            f"{statistics.mean(r['mean_speed_mps'] for r in rs):5.2f} m/s  mean time gap "
-            f"{statistics.mean(gaps) if gaps else float('nan'):5.2f} s"
+            f"{statistics.mean(r['mean_speed_mps'] for r in rs):5.2f} m/s  median time gap "
+            f"{gap:5.2f} s (following {sum(w for _, w in gaps):.0f} s)"
         )
     print(
         f"ego collisions {sum(r['collisions'] for r in rows)}, red-light violations "

@@ -17,6 +17,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import resource
 import sys
 import tempfile
@@ -25,30 +26,17 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests.synthetic
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests/
 
-import pyarrow.parquet as pq  # noqa: E402
-
-from tests.synthetic import synthetic_table  # noqa: E402
+from tests.test_training_data import write_shards  # noqa: E402
 from training import data, fit  # noqa: E402
 from training.config import PRESETS  # noqa: E402
 from training.losses import compute_losses  # noqa: E402
 from training.model import IIDSU, INPUTS  # noqa: E402
 
-WEATHERS = ("sunny", "cloudy", "rainy", "foggy")
-
 
 def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: kB
-
-
-def write_shards(root: Path, episodes: int, frames: int) -> Path:
-    for e in range(episodes):
-        town = f"town{e % 2}"
-        (root / town).mkdir(parents=True, exist_ok=True)
-        table = synthetic_table(frames, f"{town}-0-{e}", town, WEATHERS[e % 4], seed=e)
-        pq.write_table(table, root / town / f"{town}-0-{e}.parquet", row_group_size=16)
-    return root
 
 
 def batch_of(root: Path, output_px: int, batch_size: int, device: torch.device) -> dict:
@@ -64,14 +52,9 @@ def train_rate(preset: str, batch: dict, device: torch.device, steps: int) -> fl
     model = IIDSU(model_cfg).to(device, memory_format=torch.channels_last)
     optimizer = fit.make_optimizer(model, train_cfg)
     cuda = device.type == "cuda"
-    autocast = (
-        torch.autocast("cuda", dtype=torch.bfloat16)
-        if cuda
-        else torch.autocast("cpu", enabled=False)
-    )
 
     def step():
-        with autocast:
+        with fit.autocast(device):
             out = model(*(batch[k] for k in INPUTS))
         loss = compute_losses(out, batch, train_cfg)["total"]
         optimizer.zero_grad(set_to_none=True)
@@ -105,7 +88,8 @@ def main() -> None:
     args = parser.parse_args()
     print(f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads")
     with tempfile.TemporaryDirectory() as tmp:
-        root = write_shards(Path(tmp) / "shards", episodes=8, frames=25)  # 200 frames
+        # 200 frames: 2 towns x 4 episodes x 25 frames, row groups of 16 frames.
+        root = write_shards(Path(tmp) / "shards", episodes=4, frames=25, row_group=16)
 
         tiny_model, tiny_train = PRESETS["tiny"]
         rss0 = peak_rss_mb()
@@ -120,12 +104,10 @@ def main() -> None:
         print("\n2. loader (decode JPEG/PNG + render targets), samples/s:")
         for R in (64, 256):
             for workers in (0, 1, 2):
-                r = loader_rate(root, R, workers, n=120)
+                r = loader_rate(root, R, workers, n=200)
                 print(
                     f"   R={R:<3}  workers={workers}: {r:6.1f}  ({r / max(workers, 1):.1f} per worker)"
                 )
-
-        import dataclasses
 
         cfg = dataclasses.replace(
             tiny_train, shards=str(root), out=str(Path(tmp) / "run"), epochs=1

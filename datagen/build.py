@@ -1,7 +1,7 @@
 """`datagen build`: the dataset, as parallel, resumable, crash-safe Parquet shards.
 
     datagen build --towns 8 --frames 146000            # paper scale (Sec. IV: 146k frames, 8 towns)
-    datagen build --town grid --town radial --frames 2000 --workers 2 --out data/
+    datagen build --town grid_small --town spider --frames 2000 --workers 2 --out data/
     datagen build --net my_city.net.xml --frames 5000 --weather-mix sunny=3,foggy=1
     datagen build ... --executor ray [--ray-address ray://head:10001]
 
@@ -72,6 +72,7 @@ SUMMARY_COUNTS = (
     "reroutes",
 )
 MANIFEST = "_manifest.json"
+LOCK = "_build.lock"
 MANIFEST_FORMAT = "iidsu-build-manifest/1"
 META_EPISODE_JSON = "iidsu.episode_json"
 """Shard file metadata: the episode's spec, row count and end reason, so that a shard renamed just
@@ -163,11 +164,22 @@ class Episode:
         }
 
 
-def generator_version() -> str:
+def available_cores() -> int:
+    """Cores this process may run on (taskset / cgroup CPU sets respected)."""
     try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def generator_version() -> str:
+    """The shards' `iidsu.generator_version` (package and scene version): a dataset is never
+    resumed with a different generator."""
+    try:
+        from datagen.episode import generator_version as episode_generator_version
+    except ImportError:  # pragma: no cover  (the sensors are part of the package)
         return importlib.metadata.version("iidsu")
-    except importlib.metadata.PackageNotFoundError:
-        return "0+unknown"
+    return episode_generator_version()
 
 
 def split_evenly(total: int, parts: int) -> list[int]:
@@ -329,9 +341,9 @@ def run_task(
         sensors = sensors if sensors is not None else episode_module.SensorConfig()
         runner = episode_module.run_episode
     progress = (lambda k: report(episode.episode_id, k)) if report else None
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     result = runner(spec, sensors, progress)
-    t1 = time.perf_counter()
+    t1, cpu1 = time.perf_counter(), time.process_time()
     table: pa.Table = result.table
     rows = table.num_rows
     if rows > episode.n_frames:
@@ -352,7 +364,9 @@ def run_task(
         record["bytes"] = shards.write_shard(table.replace_schema_metadata(meta), path)
         record["file"] = str(path.relative_to(out_dir))
     t2 = time.perf_counter()
-    timing = {"episode_s": t1 - t0, "write_s": t2 - t1}
+    # cpu_s: this process's CPU time (all threads) in run_episode; below episode_s when the
+    # machine is shared, so the two tell contention from cost.
+    timing = {"episode_s": t1 - t0, "write_s": t2 - t1, "cpu_s": cpu1 - cpu0}
     for k, v in (result.stats or {}).items():  # per-stage seconds, if the episode reports them
         if isinstance(v, dict) and k.startswith("tim"):
             timing.update({f"{s}_s" if not s.endswith("_s") else s: float(x) for s, x in v.items()})
@@ -439,7 +453,8 @@ class ProcessExecutor:
 
     def close(self, cancel: bool = False) -> None:
         if cancel:
-            self.pool.shutdown(wait=False, cancel_futures=True)
+            # Stop the running episodes now: their shards are unfinished temporaries, which
+            # the next run sweeps away. (shutdown() forgets the processes, so kill them first.)
             terminate = getattr(self.pool, "terminate_workers", None)  # Python >= 3.14
             if terminate:
                 terminate()
@@ -462,9 +477,14 @@ def _drain(q, timeout: float) -> list[tuple]:
 
 
 def _raise_task_error(episode: Episode, e: BaseException):
-    tb = "".join(traceback.format_exception(e))
-    print(tb, file=sys.stderr)
-    raise RuntimeError(f"episode {episode.episode_id} failed: {type(e).__name__}: {e}") from None
+    """A failed episode is a bug (not the user's): its traceback for the report, then one line.
+    Finished episodes stay; the same command resumes once the bug is fixed."""
+    print("".join(traceback.format_exception(e)).rstrip(), file=sys.stderr)
+    first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+    raise UserError(
+        f"episode {episode.episode_id} failed ({type(e).__name__}: {first}; traceback above); "
+        "finished episodes are kept"
+    ) from None
 
 
 class RayExecutor:
@@ -592,9 +612,37 @@ def _differences(old: dict, new: dict) -> list[str]:
     return out
 
 
+class BuildLock:
+    """`<out>/_build.lock`, held (flock) for the whole build so that two builds never write
+    one directory; the kernel releases it when the process dies, even by SIGKILL."""
+
+    def __init__(self, out_dir: Path):
+        self.path = Path(out_dir) / LOCK
+        self.fd: int | None = None
+
+    def __enter__(self) -> BuildLock:
+        import fcntl
+
+        self.fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(self.fd)
+            self.fd = None
+            raise UserError(
+                f"another datagen build is writing {self.path.parent}; wait for it or stop it"
+            ) from None
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.fd is not None:
+            self.path.unlink(missing_ok=True)
+            os.close(self.fd)  # closing releases the lock
+            self.fd = None
+
+
 def prepare_output(out_dir: Path, cfg: BuildConfig, force: bool) -> dict:
     """Check or clear `out_dir` for this build; return the finished episodes to keep."""
-    shards.check_writable(out_dir)
     shards.remove_temporaries(out_dir)
     manifest = None if force else load_manifest(out_dir)
     found = list(_iidsu_shards(out_dir))
@@ -740,10 +788,24 @@ def build(
     progress_bar: bool = True,
 ) -> BuildReport:
     """Build (or resume) the dataset of `cfg` in `out_dir`; see the module docstring."""
+    out_dir = Path(out_dir)
+    shards.check_writable(out_dir)
+    with BuildLock(out_dir):
+        return _build(
+            cfg,
+            out_dir,
+            workers or available_cores(),
+            force,
+            executor,
+            ray_address,
+            runner,
+            progress_bar,
+        )
+
+
+def _build(cfg, out_dir, workers, force, executor, ray_address, runner, progress_bar):
     from tqdm import tqdm
 
-    out_dir = Path(out_dir)
-    workers = workers or os.cpu_count() or 1
     done = prepare_output(out_dir, cfg, force)
     towns = {t.name: t for t in cfg.towns}
     run = {"executor": executor, "workers": workers, "started_unix": time.time()}
@@ -920,7 +982,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--force", action="store_true", help="replace an existing dataset in --out (any args)"
     )
-    p.add_argument("--executor", choices=("process", "ray"), default="process")
+    p.add_argument(
+        "--executor",
+        choices=("process", "ray"),
+        default="process",
+        help="run episodes in local processes (default) or as Ray tasks",
+    )
     p.add_argument(
         "--ray-address", default=None, help="an existing Ray cluster (default: start a local one)"
     )

@@ -56,12 +56,6 @@ class CameraConfig:
     def focal_px(self) -> float:
         return self.width_px / 2 / math.tan(math.radians(self.fov_deg) / 2)
 
-    @property
-    def crop_half_fov_rad(self) -> float:
-        """Half the horizontal field of view of the crop (along its diagonal, a bit more)."""
-        half = self.crop_px / 2
-        return math.atan(math.hypot(half, half) / self.focal_px)
-
 
 @dataclass(frozen=True)
 class CameraWeather:
@@ -136,6 +130,7 @@ CAMERA_WEATHER = {
     ),
 }
 
+DEFAULT_SUN = np.array([0.5, 0.3, 0.81])  # towards the sun, world frame (~54 deg up)
 LAMP_RGB = np.array([(255, 45, 30), (255, 190, 20), (40, 255, 110)], np.float32) / 255
 _LIGHT_SLOT = {"red": 0, "yellow": 1, "green": 2}
 GLASS_RGB = np.array([0.17, 0.21, 0.26], np.float32)
@@ -208,10 +203,15 @@ class Camera:
         origin = np.array([ox, oy, self.config.mount_z_m], np.float32)
         return np.broadcast_to(origin, dirs.shape).copy(), dirs
 
-    def actor_rays(self, scene: FrameScene, pose: Pose) -> np.ndarray | None:
-        """Indices of the pixels whose ray can hit an agent's bounding sphere (None: all):
-        the union of each sphere's projected bounding rectangle."""
+    def actor_rays(self, scene: FrameScene, pose: Pose) -> np.ndarray:
+        """Indices of the pixels whose ray can hit an agent's bounding sphere: the union of
+        each sphere's projected bounding rectangle (pinhole: u = f * right / forward).
+
+        A sphere wholly ahead of the camera projects inside the rectangle spanned by its
+        extreme (right, down) over its nearest and farthest depth; one that reaches behind the
+        camera plane can appear anywhere on the side(s) it lies on, out to the image border."""
         cfg = self.config
+        n = cfg.crop_px
         if not len(scene.agents):
             return np.zeros(0, np.int64)
         cam = pose.ego_from_world(scene.actor_centres_m[:, :2])
@@ -219,25 +219,29 @@ class Camera:
         right = -cam[:, 1]
         down = cfg.mount_z_m - scene.actor_centres_m[:, 2]
         r = scene.actor_radii_m + 0.05
-        ahead = fwd + r > 0
-        if ((fwd - r < 0.05) & ahead).any():
-            return None  # a sphere around the camera plane: cast everything
         f = cfg.focal_px
-        x0 = (cfg.width_px - cfg.crop_px) / 2 + 0.5 - cfg.width_px / 2
-        y0 = (cfg.height_px - cfg.crop_px) / 2 + 0.5 - cfg.height_px / 2
-        depth = np.stack([fwd - r, fwd + r], 1)[:, :, None]  # (A, 2, 1)
-        us = f * np.stack([right - r, right + r], 1)[:, None, :] / depth  # (A, 2, 2)
-        vs = f * np.stack([down - r, down + r], 1)[:, None, :] / depth
-        c0 = np.floor(us.min((1, 2)) - x0).astype(int)
-        c1 = np.ceil(us.max((1, 2)) - x0).astype(int)
-        r0 = np.floor(vs.min((1, 2)) - y0).astype(int)
-        r1 = np.ceil(vs.max((1, 2)) - y0).astype(int)
-        n = cfg.crop_px
+        x0 = (cfg.width_px - n) / 2 + 0.5 - cfg.width_px / 2  # crop column 0's u
+        y0 = (cfg.height_px - n) / 2 + 0.5 - cfg.height_px / 2
+        big = 1e6
         mask = np.zeros((n, n), bool)
-        for a in np.flatnonzero(ahead):
-            if c1[a] < 0 or r1[a] < 0 or c0[a] >= n or r0[a] >= n:
+        for a in np.flatnonzero(fwd + r > 0.05):
+            near, far = fwd[a] - r[a], fwd[a] + r[a]
+            bounds = []
+            for c in (right[a], down[a]):
+                lo, hi = c - r[a], c + r[a]
+                if near > 0.05:
+                    vals = (f * lo / near, f * lo / far, f * hi / near, f * hi / far)
+                    bounds.append((min(vals), max(vals)))
+                else:  # reaches behind the camera: open towards the border on its side(s)
+                    bounds.append(
+                        (f * lo / far if lo > 0 else -big, f * hi / far if hi < 0 else big)
+                    )
+            (u0, u1), (v0, v1) = bounds
+            c0, c1 = math.floor(u0 - x0), math.ceil(u1 - x0)
+            r0, r1 = math.floor(v0 - y0), math.ceil(v1 - y0)
+            if c1 < 0 or r1 < 0 or c0 >= n or r0 >= n:
                 continue
-            mask[max(r0[a], 0) : r1[a] + 1, max(c0[a], 0) : c1[a] + 1] = True
+            mask[max(r0, 0) : r1 + 1, max(c0, 0) : c1 + 1] = True
         return np.flatnonzero(mask)
 
     def render(
@@ -246,7 +250,7 @@ class Camera:
         pose: Pose,
         weather: CameraWeather,
         rng: np.random.Generator,
-        sun_dir: np.ndarray = np.array([0.5, 0.3, 0.81]),
+        sun_dir: np.ndarray = DEFAULT_SUN,
         lamps: np.ndarray | None = None,
     ) -> np.ndarray:
         """(crop_px, crop_px, 3) uint8 RGB image of the scene from the ego at `pose`.
@@ -262,12 +266,12 @@ class Camera:
         sky, reflected_sky = self._skies(weather)
         hi = np.flatnonzero(prim >= 0)
         p = prim[hi]
-        d = dirs[hi]
+        d = np.take(dirs, hi, axis=0)  # np.take: ~4x faster than fancy indexing for rows
         t = dist[hi]
-        n = scene.normals[p]
-        facing = np.einsum("ij,ij->i", n, d)
+        n = np.take(scene.normals, p, axis=0)
+        facing = n[:, 0] * d[:, 0] + n[:, 1] * d[:, 1] + n[:, 2] * d[:, 2]
         n *= np.where(facing > 0, np.float32(-1), np.float32(1))[:, None]  # towards the camera
-        albedo = scene.colour_rgb[p].astype(np.float32)  # 0..255
+        albedo = np.take(scene.colour_rgb, p, axis=0).astype(np.float32)  # 0..255
         mat = scene.material[p]
         pts = origins[0] + d * t[:, None]
 
@@ -285,7 +289,7 @@ class Camera:
         lambert = np.maximum(n @ sun, 0)
         if cfg.shadows and weather.sun > 0.5:
             lit = np.flatnonzero(lambert > 0)
-            o = pts[lit] + n[lit] * np.float32(0.03)
+            o = np.take(pts, lit, axis=0) + np.take(n, lit, axis=0) * np.float32(0.03)
             near = _shadow_candidates(o, scene, sun)
             lambert[lit[scene.occluded(o, sun[None], 200.0, near)]] = 0
         light = (weather.ambient + weather.sun * lambert) * (0.75 + 0.25 * np.abs(n[:, 2]))
@@ -294,10 +298,14 @@ class Camera:
 
         # Wet surfaces: darker, and mirror the sky at grazing angles (Schlick, F0 = 0.04).
         if weather.wet > 0:
-            flat = np.flatnonzero((mat <= Material.SIDEWALK) & (n[:, 2] > 0.9))  # road, marking, sidewalk
+            flat = np.flatnonzero(
+                (mat <= Material.SIDEWALK) & (n[:, 2] > 0.9)
+            )  # road, marking, sidewalk
             cos_view = np.abs(facing[flat])
             f = ((0.04 + 0.96 * (1 - cos_view) ** 5) * weather.wet)[:, None]
-            colour[flat] = colour[flat] * (1 - 0.35 * weather.wet) * (1 - f) + reflected_sky[hi[flat]] * f
+            colour[flat] = (
+                colour[flat] * (1 - 0.35 * weather.wet) * (1 - f) + reflected_sky[hi[flat]] * f
+            )
 
         # Lamps glow (unshaded) in their signal's colour.
         lamp = np.flatnonzero(mat == Material.LAMP)

@@ -51,11 +51,13 @@ class Obstacle:
             nearest extent, m (may be <= 0 when touching).
         speed_mps: its speed along the path, m/s (0 for something crossing).
         kind: "vehicle" or "pedestrian".
+        track_id: who it is (diagnostics only; the rules ignore it).
     """
 
     distance_m: float
     speed_mps: float
     kind: str
+    track_id: str = ""
 
 
 @dataclass(frozen=True)

@@ -70,6 +70,8 @@ def read_row(path: Path, frame: int, episode: str | None = None) -> dict:
 
     import schemas
 
+    if frame < 0:
+        raise UserError(f"--frame must be >= 0, got {frame}")
     seen = 0
     for f in shard_files(path):
         try:

@@ -141,9 +141,12 @@ class Lidar:
         origin = np.array([ox, oy, self.config.mount_z_m], np.float32)
         return np.broadcast_to(origin, dirs.shape).copy(), dirs
 
-    def actor_rays(self, scene: FrameScene, origin: np.ndarray, yaw_rad: float) -> np.ndarray | None:
-        """Indices of the rays that can hit an agent's bounding sphere (None: all of them):
-        the union of each sphere's elevation x azimuth window on the beam x step grid."""
+    def actor_rays(
+        self, scene: FrameScene, origin: np.ndarray, yaw_rad: float
+    ) -> np.ndarray | None:
+        """Indices of the rays that can hit an agent's bounding sphere (None: all of them, when
+        the sensor is inside one): the union of each sphere's elevation x azimuth window on the
+        beam x step grid."""
         cfg = self.config
         n_az = cfg.azimuth_steps
         if not len(scene.agents):
@@ -161,8 +164,14 @@ class Lidar:
         az_step = 2 * math.pi / n_az
         k0 = np.clip(np.ceil((up - (el + delta)) / el_step), 0, cfg.channels).astype(int)
         k1 = np.clip(np.floor((up - (el - delta)) / el_step), -1, cfg.channels - 1).astype(int)
-        j0 = np.ceil((az - delta) / az_step).astype(int)
-        j1 = np.floor((az + delta) / az_step).astype(int)
+        # A cone of half-angle delta around elevation el spans asin(sin delta / cos el) of
+        # azimuth either side (a spherical cap), every azimuth once it reaches a pole.
+        s = np.sin(delta) / np.maximum(np.cos(el), 1e-9)
+        half = np.where(
+            (np.abs(el) + delta < math.pi / 2) & (s < 1), np.arcsin(np.minimum(s, 1)), 2 * math.pi
+        )
+        j0 = np.ceil((az - half) / az_step).astype(int)
+        j1 = np.floor((az + half) / az_step).astype(int)
         mask = np.zeros((cfg.channels, n_az), bool)
         for a in range(len(dist)):
             if k1[a] < k0[a] or j1[a] < j0[a]:
@@ -190,7 +199,7 @@ class Lidar:
         r = dist[keep]
         if weather.noise_m > 0:
             r = r + rng.standard_normal(len(keep), dtype=np.float32) * np.float32(weather.noise_m)
-        points = origins[keep] + dirs[keep] * r[:, None]
+        points = origins[0] + np.take(dirs, keep, axis=0) * r[:, None]  # one origin
         actor = actor_of_ray[keep]
         counts = np.bincount(actor[actor >= 0], minlength=len(scene.agents))
         hits = {scene.agents[a].track_id: int(c) for a, c in enumerate(counts) if c}

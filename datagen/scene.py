@@ -20,17 +20,22 @@ Static mesh (built once per network from sumolib, cached on disk under
   right corner of every signalised entry, a stop-sign post at every stop-controlled entry.
 
 Culling. Triangles are sorted into square tiles (TILE_M) by centroid; each tile knows how far its
-triangles reach beyond its centre. Per frame only the tiles that can hold something within the
-LiDAR's circle or the camera's frustum wedge are gathered, so the cost per frame does not grow
-with the town. The gathered static set is reused while the set of tiles does not change.
+triangles reach from its centre. A frame's static Embree scene holds only the tiles within the
+sensors' reach (the camera's 150 m plus its mount) plus SceneBuilder.REBUILD_M, so the cost per
+frame does not grow with the town.
 
-One Embree scene per frame (culled static + actor boxes). Measured on `grid_small` (bench/frame.py
-stages, 2-core box, median of 40 frames): committing one scene of ~45k static + ~4k dynamic
-triangles costs ~3.5 ms, casting the ~130k LiDAR and camera rays into it ~16 ms. The alternative,
-a static scene kept across frames plus a per-frame actor scene, needs two casts per ray (the
-actor cast bounded by the static hit, `dists=`) and an extra merge: it costs ~5 ms more per frame
-than it saves in commits, because a static rebuild is only needed when the tile set changes
-anyway. So: one scene per frame.
+Two Embree scenes per frame, not one. One scene per frame (culled static + actor boxes) was the
+first design, but embreex's `TriangleMesh` copies vertices into Embree one coordinate at a time through
+Python-level indexing: ~1.1 us per triangle (6.4k triangles: 6.5 ms; the 13-22k static triangles
+within reach: 15-20 ms CPU per commit, measured on this 2-core box), which alone would eat a
+third of the 50 ms frame budget. So the static scene is committed once and kept until the ego
+has moved REBUILD_M (60 m: 15-20 ms per rebuild, ~1.4 ms per frame at 10 m/s; 40 m costs 0.38
+ms per metre driven, 60 m 0.27, 80 m 0.23 with a bigger scene to traverse), and the agents get
+their own small scene each frame (~1k triangles, <1 ms). Every sensor ray is cast into the static
+scene; only the rays that can hit an agent's bounding sphere (LiDAR: its elevation x azimuth
+window, ~10k of 64k rays; camera: its projected rectangle) are cast again into the actor scene,
+bounded by their static hit (`dists=`), which costs ~0.5 ms a frame. bench/frame.py measures the
+result against bare Embree calls for the same rays.
 """
 
 from __future__ import annotations
@@ -94,7 +99,7 @@ class Material(enum.IntEnum):
     SIGN = 6
     VEHICLE = 7
     PEDESTRIAN = 8
-    LAMP = 9  # a traffic-light lamp: lit per frame by the camera (see camera.lamp_colours)
+    LAMP = 9  # a traffic-light lamp: lit per frame by the camera (see camera.lit_slots)
     VEGETATION = 10
 
 
@@ -268,8 +273,9 @@ _BOX_QUADS = (
 UNIT_BOX = np.concatenate([_BOX_QUADS[:, [0, 1, 2]], _BOX_QUADS[:, [0, 2, 3]]], axis=0)[
     np.array([0, 6, 1, 7, 2, 8, 3, 9, 4, 10, 5, 11])
 ]  # (12, 3, 3), face f is triangles 2f, 2f+1
-BOX_FACE_SIDE = np.repeat(np.array([1, 1, 1, 1, 0, 0]), 2).astype(bool)  # per triangle: a wall
-BOX_FACE_TOP = np.repeat(np.array([0, 0, 0, 0, 1, 0]), 2).astype(bool)
+BOX_FACE_TOP = np.repeat(  # per UNIT_BOX triangle: on the +z face
+    np.array([0, 0, 0, 0, 1, 0]), 2
+).astype(bool)
 
 
 def boxes_triangles(
@@ -932,8 +938,9 @@ def _parts(agent: AgentState) -> list[tuple]:
         ]
     else:  # van, truck, bus: one tall body with a windscreen
         parts += [
-            ((0, 0, (under + H) / 2), (L, W, H - under), paint, paint, m),
-            ((0.5 * L - 0.04, 0, 0.72 * H), (0.1, 0.92 * W, 0.3 * H), GLASS_RGB, GLASS_RGB, m),
+            # the body stops 4 cm short of the front so the windscreen's face is in front of it
+            ((-0.02, 0, (under + H) / 2), (L - 0.04, W, H - under), paint, paint, m),
+            ((0.5 * L - 0.03, 0, 0.72 * H), (0.06, 0.92 * W, 0.3 * H), GLASS_RGB, GLASS_RGB, m),
         ]
     return parts
 
@@ -1067,7 +1074,11 @@ class FrameScene:
             idx = np.arange(n) if actor_rays is None else actor_rays
             if len(idx):
                 a = self._run(
-                    self.actor_embree, origins[idx], directions[idx], dist[idx].copy(), output=1
+                    self.actor_embree,
+                    np.take(origins, idx, axis=0),
+                    np.take(directions, idx, axis=0),
+                    dist[idx],
+                    output=1,
                 )
                 hit = a["primID"] >= 0
                 prim[idx[hit]] = a["primID"][hit] + self.n_static
@@ -1094,7 +1105,11 @@ class FrameScene:
             idx = np.arange(n) if actor_rays is None else actor_rays
             if len(idx):
                 a = self._run(
-                    self.actor_embree, origins[idx], directions[idx], dist[idx].copy(), output=1
+                    self.actor_embree,
+                    np.take(origins, idx, axis=0),
+                    np.take(directions, idx, axis=0),
+                    dist[idx],
+                    output=1,
                 )
                 hit = a["primID"] >= 0
                 actor[idx[hit]] = self.actor[a["primID"][hit] + self.n_static]
@@ -1121,8 +1136,8 @@ class FrameScene:
             idx = np.flatnonzero(~hit) if actor_rays is None else actor_rays[~hit[actor_rays]]
             if len(idx):
                 d = np.full(len(idx), max_dist_m, np.float32)
-                dirs = directions if len(directions) == 1 else directions[idx]
-                a = self._run(self.actor_embree, origins[idx], dirs, d, "OCCLUDED")
+                dirs = directions if len(directions) == 1 else np.take(directions, idx, axis=0)
+                a = self._run(self.actor_embree, np.take(origins, idx, axis=0), dirs, d, "OCCLUDED")
                 hit[idx[a >= 0]] = True
         return hit
 
@@ -1136,7 +1151,7 @@ class SceneBuilder:
     covered. The actor scene is built every frame from the agents within reach (never the ego).
     """
 
-    REBUILD_M = 40.0
+    REBUILD_M = 60.0  # measured trade-off, see the module docstring
 
     def __init__(self, static: StaticScene, reach_m: float):
         self.static = static

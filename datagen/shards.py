@@ -36,6 +36,7 @@ STATISTICS_COLUMNS = tuple(
 )
 TEMP_PREFIX = "_"
 TEMP_SUFFIX = ".tmp"
+_HOST = os.uname().nodename.replace("/", "_")
 _DISK_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 _NOT_WRITABLE = (errno.EACCES, errno.EPERM, errno.EROFS)
 
@@ -114,7 +115,8 @@ def check_writable(out_dir: Path) -> None:
 
 
 def _atomic_write(path: Path, write) -> None:
-    tmp = path.parent / f"{TEMP_PREFIX}{path.name}.{os.getpid()}{TEMP_SUFFIX}"
+    # host and pid: writers on different machines of a cluster never share a temporary
+    tmp = path.parent / f"{TEMP_PREFIX}{path.name}.{_HOST}.{os.getpid()}{TEMP_SUFFIX}"
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         write(tmp)

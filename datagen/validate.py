@@ -246,7 +246,7 @@ def run(args) -> int:
         reports, problems, rows = [check_shard(path)], [], 0
         rows = reports[0].rows
     else:
-        reports, problems, rows = validate_dir(path, args.workers or os.cpu_count() or 1)
+        reports, problems, rows = validate_dir(path, args.workers or len(os.sched_getaffinity(0)))
     lines = [f"{r.path}: {p}" for r in reports for p in r.problems] + problems
     for line in lines:
         print(line, file=sys.stderr)

@@ -143,8 +143,7 @@ class _Stats:
     reroutes: int = 0
     distance_m: float = 0.0
     speed_sum: float = 0.0
-    gap_sum_s: float = 0.0
-    gap_n: int = 0
+    gaps_s: list = field(default_factory=list)
     reasons: dict = field(default_factory=dict)
 
 
@@ -745,16 +744,17 @@ class World:
                         i = sel[j]
                         gap = float(along[j] - ahead[j])
                         if is_ped[i]:
-                            out.append(expert.Obstacle(gap, 0.0, "pedestrian"))
+                            out.append(expert.Obstacle(gap, 0.0, "pedestrian", ids[i]))
                         else:
                             v_along = max(0.0, float(spd_a[i] * np.cos(rel[j])))
-                            out.append(expert.Obstacle(gap, v_along, "vehicle"))
+                            out.append(expert.Obstacle(gap, v_along, "vehicle", ids[i]))
         leader = ls.vehicle.getLeader(EGO_ID, PATH_LOOKAHEAD_M)
         if leader and leader[0]:
             lid, d = leader
             r = self._context.get(lid)
             v = r[ls.VAR_SPEED] if r else ls.vehicle.getSpeed(lid)
-            out.append(expert.Obstacle(float(d) + 1.0, float(v), "vehicle"))  # + ego vType minGap
+            # SUMO's gap leaves out the ego vType's minGap (1 m); "lead:" marks the lane leader
+            out.append(expert.Obstacle(float(d) + 1.0, float(v), "vehicle", "lead:" + lid))
         return out
 
     def _is_kerb(self, lane_id: str) -> bool:
@@ -934,12 +934,11 @@ class World:
         st.reasons[reason] = st.reasons.get(reason, 0) + 1
         st.distance_m += v1 * dt
         st.speed_sum += v1
-        if reason == "vehicle" and v1 > 2.0:  # steady following: the time gap actually kept
-            lead = ls.vehicle.getLeader(EGO_ID, 100.0)
-            if lead and lead[0] and lead[0] in self._context:
-                if abs(self._context[lead[0]][ls.VAR_SPEED] - v1) < 1.0:
-                    st.gap_sum_s += (lead[1] + 1.0) / v1  # + the ego vType's minGap
-                    st.gap_n += 1
+        if dec.reason == "vehicle" and v1 > 2.0:  # steady following: the time gap kept
+            cars = [o for o in inp.obstacles if o.kind == "vehicle"]
+            bind = min(cars, key=lambda o: expert.follow_speed(o.distance_m, o.speed_mps, p))
+            if bind.track_id.startswith("lead:") and abs(bind.speed_mps - v1) < 1.0:
+                st.gaps_s.append(bind.distance_m / v1)
         self._sense()
         # standing still too long (not at a red light) ends the episode
         if v1 < expert.STOPPED_MPS and self._light != "red":
@@ -1133,8 +1132,8 @@ class World:
         """Episode statistics: collisions (of the ego; other_collisions between other road
         users, each pair once), red_light_violations (ego entered a junction on red),
         teleports (all vehicles), hard_brakes (steps braking harder than any command: SUMO's
-        safety braking), mean_speed_mps, mean_time_gap_s (bumper gap / speed while steadily
-        following a lead, None if never), sim/wall seconds, steps per expert reason, and how
+        safety braking), mean_speed_mps, mean_time_gap_s and median_time_gap_s (bumper gap /
+        speed while steadily following a lead, None if never), sim/wall seconds, steps per expert reason, and how
         the episode ended."""
         st = self._stats
         return {
@@ -1149,7 +1148,9 @@ class World:
             "reroutes": st.reroutes,
             "distance_m": round(st.distance_m, 1),
             "mean_speed_mps": st.speed_sum / st.steps if st.steps else 0.0,
-            "mean_time_gap_s": st.gap_sum_s / st.gap_n if st.gap_n else None,
+            "mean_time_gap_s": float(np.mean(st.gaps_s)) if st.gaps_s else None,
+            "median_time_gap_s": float(np.median(st.gaps_s)) if st.gaps_s else None,
+            "following_s": round(len(st.gaps_s) * self.config.step_s, 1),
             "n_vehicles": self._n_veh,
             "n_pedestrians": self._n_ped,
             "reasons": dict(sorted(st.reasons.items())),

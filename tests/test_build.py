@@ -59,6 +59,12 @@ def fake_runner(spec, sensors, progress):
     return FakeResult(table, "route_end" if early else None, {"collisions": 0, "teleports": 0})
 
 
+def failing_runner(spec, sensors, progress):
+    if spec.episode_id == "alpha-7-0003":
+        raise ValueError("the simulator fell over")
+    return fake_runner(spec, sensors, progress)
+
+
 def fake_config(frames=96, seed=7, episode_seconds=8.0) -> build.BuildConfig:
     return build.BuildConfig(
         towns=FAKE_TOWNS, frames=frames, seed=seed, episode_seconds=episode_seconds, sensors={}
@@ -210,6 +216,24 @@ def test_different_arguments_are_refused_unless_forced(tmp_path):
     assert len(pd.read_parquet(tmp_path, columns=["frame"])) == 48
 
 
+def test_a_failing_episode_stops_the_build_and_keeps_the_rest(tmp_path, capsys):
+    with pytest.raises(UserError, match=r"episode alpha-7-0003 failed \(ValueError: the sim"):
+        build.build(fake_config(), tmp_path, workers=1, runner=failing_runner, progress_bar=False)
+    assert "Traceback" in capsys.readouterr().err  # the worker's, for the bug report
+    manifest = json.loads((tmp_path / build.MANIFEST).read_text())
+    done = [e["episode_id"] for e in manifest["episodes"] if e["status"] == "done"]
+    assert "alpha-7-0000" in done and "alpha-7-0003" not in done
+    assert fake_build(tmp_path).manifest["status"] == "complete"  # resumes once fixed
+
+
+def test_two_builds_never_write_one_directory(tmp_path):
+    with build.BuildLock(tmp_path):
+        with pytest.raises(UserError, match="another datagen build is writing"):
+            fake_build(tmp_path)
+    assert fake_build(tmp_path).manifest["status"] == "complete"
+    assert not (tmp_path / build.LOCK).exists()
+
+
 def test_foreign_parquet_files_are_never_touched(tmp_path):
     pd.DataFrame({"a": [1]}).to_parquet(tmp_path / "mine.parquet")
     with pytest.raises(UserError, match="not iidsu shards"):
@@ -256,10 +280,12 @@ def test_sigkill_then_rerun_equals_an_uninterrupted_build(tmp_path):
 
 def test_ctrl_c_stops_cleanly_and_the_rerun_finishes(tmp_path):
     out = tmp_path / "out"
-    proc = _spawn_fake_build(out, {"FAKE_FRAME_SECONDS": "0.02"})
+    proc = _spawn_fake_build(out, {"FAKE_FRAME_SECONDS": "0.1"})  # 1.6 s an episode
     _wait_for_shards(out, 2, proc)
     os.killpg(proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does
+    t0 = time.monotonic()
     _, stderr = proc.communicate(timeout=30)
+    assert time.monotonic() - t0 < 1.5  # running episodes are stopped, not waited for
     assert proc.returncode == 130
     assert "run the same command again to resume" in stderr.decode()
     assert "Traceback" not in stderr.decode()
@@ -370,6 +396,29 @@ def test_bad_input_is_a_one_line_error(tmp_path, args, message):
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("datagen build: error: "), proc.stderr
     assert message in lines[0]
+
+
+def test_a_user_network_is_a_town_named_by_its_stem(tmp_path):
+    import sumo
+
+    net = Path(sumo.SUMO_HOME) / "tools" / "game" / "fokr_bs_demo" / "fokr_bs.net.xml.gz"
+    out = tmp_path / "data"
+    datagen("build", "--net", net, "--frames", "12", "--workers", "2", "--out", out)
+    manifest = json.loads((out / build.MANIFEST).read_text())
+    assert [t["name"] for t in manifest["towns"]] == ["fokr_bs"]
+    assert manifest["towns"][0]["net_path"] == str(net)
+    df = pd.read_parquet(out, columns=["town", "episode_id"])
+    assert set(df.town) == {"fokr_bs"} and len(df) == 12
+    assert datagen("validate", out).returncode == 0
+
+
+def test_sensor_overrides_reach_the_config():
+    sensors = build.parse_sensors(["jpeg_quality=80", "lidar.azimuth_steps=500"])
+    assert sensors.jpeg_quality == 80 and sensors.lidar.azimuth_steps == 500
+    with pytest.raises(UserError, match="no field 'bogus'"):
+        build.parse_sensors(["lidar.bogus=1"])
+    with pytest.raises(UserError, match="cannot read 'many'"):
+        build.parse_sensors(["jpeg_quality=many"])
 
 
 def test_validate_reports_a_corrupt_shard_on_one_line(small, tmp_path):

@@ -6,7 +6,11 @@ agents and a 3x3 SUMO network with a signal, stop-controlled junctions and sidew
 
 from __future__ import annotations
 
+import atexit
+import functools
 import math
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -51,7 +55,10 @@ def frame_at(
         ego=ego_state,
         agents=tuple(agents),
         command="follow",
-        target_point_xy_m=(ego.x_m + 20 * math.cos(ego.yaw_rad), ego.y_m + 20 * math.sin(ego.yaw_rad)),
+        target_point_xy_m=(
+            ego.x_m + 20 * math.cos(ego.yaw_rad),
+            ego.y_m + 20 * math.sin(ego.yaw_rad),
+        ),
         traffic_light=traffic_light,
         light_distance_m=light_distance_m,
         stop_sign=False,
@@ -109,21 +116,22 @@ def build_test_network(path: Path) -> Path:
     return build_plain_network(nodes, edges, path)
 
 
-@pytest.fixture(scope="session")
-def test_net(tmp_path_factory) -> Path:
-    return build_test_network(tmp_path_factory.mktemp("net") / "grid3.net.xml")
-
-
-@pytest.fixture(scope="session")
-def test_net_scene(test_net) -> scene.StaticScene:
-    return scene.build_static_scene(test_net)
+@functools.cache
+def shared_grid3() -> tuple[Path, scene.StaticScene]:
+    """The test network and its static scene, built once per test session (in a temporary
+    directory removed at exit); the sensor tests share it."""
+    tmp = Path(tempfile.mkdtemp(prefix="iidsu-grid3-"))
+    atexit.register(shutil.rmtree, tmp, True)
+    net = build_test_network(tmp / "grid3.net.xml")
+    return net, scene.build_static_scene(net)
 
 
 # ---------------------------------------------------------------------------- tests
 
 
-def test_town_mesh_has_every_static_material(test_net_scene):
-    mats = set(np.unique(test_net_scene.material).tolist())
+def test_town_mesh_has_every_static_material():
+    _, grid3_scene = shared_grid3()
+    mats = set(np.unique(grid3_scene.material).tolist())
     for m in (
         Material.ROAD,
         Material.MARKING,
@@ -136,17 +144,17 @@ def test_town_mesh_has_every_static_material(test_net_scene):
     ):
         assert m in mats, m.name
     # one or two heads per signalised entry (4 entries at the middle node), lamps tagged
-    assert 4 <= len(test_net_scene.head_xy_m) <= 8
-    lamps = test_net_scene.tag[test_net_scene.material == Material.LAMP]
-    assert lamps.min() >= 0 and lamps.max() < 3 * len(test_net_scene.head_xy_m)
+    assert 4 <= len(grid3_scene.head_xy_m) <= 8
+    lamps = grid3_scene.tag[grid3_scene.material == Material.LAMP]
+    assert lamps.min() >= 0 and lamps.max() < 3 * len(grid3_scene.head_xy_m)
 
 
-def test_buildings_stay_off_roads_and_sidewalks(test_net_scene):
-    from schemas import BEV_SIZE_PX  # noqa: F401  (grid constants are exercised elsewhere)
+def test_buildings_stay_off_roads_and_sidewalks():
+    _, grid3_scene = shared_grid3()
     from shapely import Point, Polygon
     from shapely.strtree import STRtree
 
-    st = test_net_scene
+    st = grid3_scene
     rings = [st.bev_xy_m[st.bev_start[k] : st.bev_start[k + 1]] for k in range(len(st.bev_class))]
     tree = STRtree([Polygon(r).buffer(0) for r in rings])
     walls = st.triangles_m[st.material == Material.BUILDING]
@@ -156,16 +164,16 @@ def test_buildings_stay_off_roads_and_sidewalks(test_net_scene):
     assert hits.shape[1] == 0, "a building corner lies on a road, sidewalk or marking"
 
 
-def test_tiles_hold_their_triangles_within_reach(test_net_scene):
-    st = test_net_scene
+def test_tiles_hold_their_triangles_within_reach():
+    st = shared_grid3()[1]
     centres = st.tile_centres_m()
     tile_of = np.repeat(np.arange(len(centres)), np.diff(st.tile_start))
     d = np.linalg.norm(st.triangles_m[..., :2] - centres[tile_of][:, None, :], axis=2).max(1)
     assert (d <= st.tile_reach_m[tile_of] + 1e-3).all()
 
 
-def test_culling_keeps_everything_within_the_sensors_reach(test_net_scene):
-    st = test_net_scene
+def test_culling_keeps_everything_within_the_sensors_reach():
+    st = shared_grid3()[1]
     pose = Pose(130.0, 95.0, 0.3)
     builder = SceneBuilder(st, reach_m=60.0)
     tiles = builder.visible_tiles(np.array([pose.x_m, pose.y_m]), 60.0)
@@ -177,20 +185,29 @@ def test_culling_keeps_everything_within_the_sensors_reach(test_net_scene):
     assert kept.sum() < st.n_triangles  # and it does cull
 
 
-def test_static_scene_is_deterministic_and_cached(test_net, test_net_scene, tmp_path):
-    again = scene.build_static_scene(test_net)
-    np.testing.assert_array_equal(again.triangles_m, test_net_scene.triangles_m)
-    np.testing.assert_array_equal(again.colour_rgb, test_net_scene.colour_rgb)
-    first = scene.load_static_scene(test_net, cache_dir=tmp_path)
+def test_static_scene_is_deterministic_and_cached(tmp_path):
+    grid3_net, grid3_scene = shared_grid3()
+    again = scene.build_static_scene(grid3_net)
+    np.testing.assert_array_equal(again.triangles_m, grid3_scene.triangles_m)
+    np.testing.assert_array_equal(again.colour_rgb, grid3_scene.colour_rgb)
+    scene._loaded.clear()  # another test may have loaded it into this process already
+    first = scene.load_static_scene(grid3_net, cache_dir=tmp_path)
     assert list(tmp_path.glob("*.npz")), "no cache file written"
     scene._loaded.clear()
-    second = scene.load_static_scene(test_net, cache_dir=tmp_path)
+    second = scene.load_static_scene(grid3_net, cache_dir=tmp_path)
     for name in ("triangles_m", "material", "tile_start", "bev_xy_m", "head_xy_m"):
         np.testing.assert_array_equal(getattr(first, name), getattr(second, name))
 
 
-@pytest.mark.parametrize("cls,dims", [("vehicle", (4.5, 1.8, 1.5)), ("vehicle", (12.0, 2.55, 3.2)),
-                                      ("pedestrian", (0.4, 0.5, 1.75)), ("bicycle", (1.7, 0.65, 1.7))])
+@pytest.mark.parametrize(
+    "cls,dims",
+    [
+        ("vehicle", (4.5, 1.8, 1.5)),
+        ("vehicle", (12.0, 2.55, 3.2)),
+        ("pedestrian", (0.4, 0.5, 1.75)),
+        ("bicycle", (1.7, 0.65, 1.7)),
+    ],
+)
 def test_actor_boxes_fill_the_agents_extent(cls, dims):
     a = agent_at("a", 10.0, -3.0, 0.5, cls=cls, dims=dims)
     mesh = scene.actor_mesh([a])

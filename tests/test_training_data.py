@@ -6,12 +6,11 @@ import pyarrow.parquet as pq
 import pytest
 
 import schemas
+from schemas import WEATHERS
 from tests.synthetic import synthetic_table
 from training import data
 from training.errors import UserError
 from training.targets import centres_to_objects, decode_centres, render_density
-
-WEATHERS = ("sunny", "cloudy", "rainy", "foggy")
 
 
 def write_shards(

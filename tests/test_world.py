@@ -170,8 +170,8 @@ def test_cautious_drives_slower_with_longer_gaps_than_aggressive():
             with World(cfg) as world:
                 world.advance(90.0)
                 s.append(world.stats["mean_speed_mps"])
-                if world.stats["mean_time_gap_s"] is not None:
-                    g.append(world.stats["mean_time_gap_s"])
+                if world.stats["median_time_gap_s"] is not None:
+                    g.append(world.stats["median_time_gap_s"])
         speed[behaviour], gap[behaviour] = np.mean(s), np.mean(g)
     assert speed["cautious"] < speed["aggressive"]
     assert gap["cautious"] > gap["aggressive"]

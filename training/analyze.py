@@ -12,7 +12,6 @@ ECA's global pooling).
 from __future__ import annotations
 
 import json
-from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +21,7 @@ import torch.nn.functional as F
 from training import data
 from training.checkpoint import load_checkpoint, model_from_checkpoint
 from training.errors import UserError
-from training.fit import choose_device, to_device
+from training.fit import autocast, choose_device, to_device
 
 LABELS = {"detection": "det&pred", "bev": "BEV", "traffic": "traffic", "weather": "weather"}
 
@@ -30,14 +29,11 @@ LABELS = {"detection": "det&pred", "bev": "BEV", "traffic": "traffic", "weather"
 @torch.no_grad()
 def eca_similarity(model, loader, device: torch.device) -> dict[str, float]:
     """Mean over frames of cos(ECA weights of head h, ECA weights of planning), per aux head."""
-    autocast = (
-        torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" else nullcontext()
-    )
     aux = [h for h in model.cfg.heads if h != "planning"]
     sums, n = dict.fromkeys(aux, 0.0), 0
     for batch in loader:
         batch = to_device(batch, device)
-        with autocast:
+        with autocast(device):
             f = model.encode(batch["image"], batch["lidar"], batch["speed"])
         plan = model.eca["planning"].weights(f.float())  # (B, C)
         for h in aux:

@@ -30,37 +30,25 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
 
 
-def _positive(kind):
+def _checked(kind, ok, need: str):
+    """An argparse type: `kind(text)`, refused unless `ok(value)` ("must be {need}")."""
+
     def parse(text: str):
         try:
             value = kind(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-        if value <= 0:
-            raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+            raise argparse.ArgumentTypeError(f"not a valid {kind.__name__}: {text!r}") from None
+        if not ok(value):
+            raise argparse.ArgumentTypeError(f"must be {need}, got {text}")
         return value
 
     return parse
 
 
-def _fraction(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not 0.0 <= value < 1.0:
-        raise argparse.ArgumentTypeError(f"must be in [0, 1), got {text}")
-    return value
-
-
-def _workers(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
-    return value
+_positive_int = _checked(int, lambda v: v > 0, "positive")
+_positive_float = _checked(float, lambda v: v > 0, "positive")
+_fraction = _checked(float, lambda v: 0 <= v < 1, "in [0, 1)")
+_workers = _checked(int, lambda v: v >= 0, "0 or more")
 
 
 # fit flags -> (config, field); a flag left out keeps the preset's (or checkpoint's) value.
@@ -93,9 +81,9 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         "--config", choices=sorted(PRESETS), help="preset: paper (default) or tiny (for CPUs)"
     )
     p.add_argument("--out", help="run directory for last.pt and metrics.jsonl; default runs/iidsu")
-    p.add_argument("--epochs", type=_positive(int), help="epochs in all (paper preset: 30)")
-    p.add_argument("--batch-size", type=_positive(int), help="per process (paper: 32, tiny: 8)")
-    p.add_argument("--lr", type=_positive(float), help="peak learning rate (paper 1e-4)")
+    p.add_argument("--epochs", type=_positive_int, help="epochs in all (paper preset: 30)")
+    p.add_argument("--batch-size", type=_positive_int, help="per process (paper: 32, tiny: 8)")
+    p.add_argument("--lr", type=_positive_float, help="peak learning rate (paper 1e-4)")
     p.add_argument("--workers", type=_workers, help="DataLoader workers per process")
     p.add_argument("--val-fraction", type=_fraction, help="share of episodes held out (0.1)")
     p.add_argument(
@@ -104,7 +92,7 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         help="hold out these towns' episodes instead (comma-separated)",
     )
     p.add_argument("--seed", type=int, help="seed of weights, split and data order (0)")
-    p.add_argument("--output-px", type=_positive(int), help="R, side of the dense heads' maps")
+    p.add_argument("--output-px", type=_positive_int, help="R, side of the dense heads' maps")
     p.add_argument("--compile", action="store_true", default=None, help="torch.compile the model")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
@@ -178,7 +166,7 @@ def _add_eval(p: argparse.ArgumentParser) -> None:
         help="all frames (default; for a held-out directory) or the fit's validation episodes",
     )
     p.add_argument("--out", help="JSON file for the metrics; default CKPT's stem + .eval.json")
-    p.add_argument("--batch-size", type=_positive(int), default=16)
+    p.add_argument("--batch-size", type=_positive_int, default=16)
     p.add_argument("--workers", type=_workers, default=2)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
 
@@ -192,9 +180,9 @@ def _run_eval(args) -> int:
 def _add_analyze(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ckpt", required=True, help="checkpoint written by train fit")
     p.add_argument("--shards", help="frames to average over; default the fit's --shards")
-    p.add_argument("--frames", type=_positive(int), default=256, help="at most this many (256)")
+    p.add_argument("--frames", type=_positive_int, default=256, help="at most this many (256)")
     p.add_argument("--out", help="JSON file; default CKPT's stem + .analyze.json")
-    p.add_argument("--batch-size", type=_positive(int), default=16)
+    p.add_argument("--batch-size", type=_positive_int, default=16)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
 
 

@@ -19,7 +19,6 @@ Prints a table and writes the numbers as JSON (default: beside the checkpoint).
 from __future__ import annotations
 
 import json
-from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +28,7 @@ from schemas import BEV_CLASSES, WAYPOINT_TIMES_S, WEATHERS
 from training import data
 from training.checkpoint import load_checkpoint, model_from_checkpoint
 from training.errors import UserError
-from training.fit import choose_device, to_device
+from training.fit import autocast, choose_device, to_device
 from training.model import INPUTS
 from training.targets import N_T, centres_to_objects, decode_centres, split_density
 
@@ -96,9 +95,6 @@ def evaluate(model, loader, device: torch.device) -> dict:
     """Every metric of the module docstring for the heads `model` has."""
     heads = model.cfg.heads
     R = model.cfg.output_px
-    autocast = (
-        torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" else nullcontext()
-    )
     times = torch.tensor(WAYPOINT_TIMES_S)
     wp_err, cv_err = [], []  # (B, 4, 2) errors, m
     preds = [[] for _ in range(N_T)]
@@ -107,7 +103,7 @@ def evaluate(model, loader, device: torch.device) -> dict:
     traffic_prob, traffic_true, weather_pred, weather_true = [], [], [], []
     for batch in loader:
         batch = to_device(batch, device)
-        with autocast:
+        with autocast(device):
             out = model(*(batch[k] for k in INPUTS))
         gt_wp = batch["waypoints"].cpu()
         wp_err.append(out["planning"].float().cpu() - gt_wp)

@@ -85,6 +85,13 @@ def start_process(device: str = "auto") -> Process:
     return Process(dist.get_rank() if world > 1 else 0, world, dev)
 
 
+def autocast(device: torch.device):
+    """bf16 autocast on GPUs (no loss scaling needed, unlike fp16); plain float32 on CPUs."""
+    if device.type == "cuda":
+        return torch.autocast("cuda", dtype=torch.bfloat16)
+    return nullcontext()
+
+
 def to_device(batch: dict, device: torch.device) -> dict:
     """Tensors of a batch onto `device` (the camera and LiDAR in channels_last, the layout the
     convolutions run fastest in, on CPU too: see training/convnext.py); other values as is."""
@@ -118,9 +125,7 @@ def _all_sum(values: dict[str, torch.Tensor], proc: Process) -> dict[str, float]
 
 
 @torch.no_grad()
-def estimate_loss(
-    model: IIDSU, loader, cfg: TrainConfig, proc: Process, autocast
-) -> dict[str, float]:
+def estimate_loss(model: IIDSU, loader, cfg: TrainConfig, proc: Process) -> dict[str, float]:
     """Mean of every loss term over the frames of `loader` (all ranks' shares together).
 
     Runs the bare model, not the DDP wrapper: ranks hold different numbers of validation
@@ -129,7 +134,7 @@ def estimate_loss(
     sums: dict[str, torch.Tensor] = {}
     for batch in loader:
         batch = to_device(batch, proc.device)
-        with autocast:
+        with autocast(proc.device):
             out = model(*(batch[k] for k in INPUTS))
         n = len(batch["speed"])
         for k, v in compute_losses(out, batch, cfg).items():
@@ -228,9 +233,6 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
     if proc.world > 1:
         ids = [proc.device.index] if proc.device.type == "cuda" else None
         model = DistributedDataParallel(model, device_ids=ids)
-    # bf16 autocast on GPUs (no loss scaling needed, unlike fp16); float32 on CPUs.
-    cuda = proc.device.type == "cuda"
-    autocast = torch.autocast("cuda", dtype=torch.bfloat16) if cuda else nullcontext()
 
     writer = None
     if proc.master:
@@ -263,7 +265,7 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
             for group in optimizer.param_groups:
                 group["lr"] = lr
             batch = to_device(batch, proc.device)
-            with autocast:
+            with autocast(proc.device):
                 outputs = model(*(batch[k] for k in INPUTS))
             terms = compute_losses(outputs, batch, cfg)
             optimizer.zero_grad(set_to_none=True)
@@ -291,7 +293,7 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
             "time_s": round(elapsed, 3),
             "samples_per_s": round(n_train / elapsed, 2),
             "train": {k: v / n_train for k, v in train.items()},
-            "val": estimate_loss(raw_model, val_loader, cfg, proc, autocast),
+            "val": estimate_loss(raw_model, val_loader, cfg, proc),
         }
         rngs = [None] * proc.world
         if proc.world > 1:
