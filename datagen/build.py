@@ -590,17 +590,28 @@ def load_manifest(out_dir: Path) -> dict | None:
 
 
 def _iidsu_shards(out_dir: Path) -> Iterable[tuple[Path, dict | None]]:
-    """(path, file metadata or None if not an iidsu shard) for every *.parquet directly in
-    `out_dir` or one of its subdirectories (the layout datagen writes)."""
+    """(path, file metadata, {} if unreadable, None if not an iidsu shard) for every *.parquet
+    directly in `out_dir` or one of its subdirectories (the layout datagen writes)."""
     for path in sorted([*out_dir.glob("*.parquet"), *out_dir.glob("*/*.parquet")]):
         if path.name.startswith(("_", ".")) or path.parent.name.startswith(("_", ".")):
             continue
         try:
             meta = pq.read_schema(path).metadata or {}
-            meta = {k.decode(): v.decode() for k, v in meta.items()}
         except (OSError, pa.ArrowException):
-            meta = {}
+            yield path, {}
+            continue
+        meta = {k.decode(): v.decode() for k, v in meta.items()}
         yield path, meta if schemas.META_SCHEMA_VERSION in meta else None
+
+
+def _ours(path: Path, out_dir: Path, cfg: BuildConfig) -> bool:
+    """Whether `path` is where this build writes one of its episodes."""
+    town = path.parent.name
+    return (
+        path.parent.parent == out_dir
+        and town in {t.name for t in cfg.towns}
+        and path.stem.startswith(f"{town}-{cfg.seed}-")
+    )
 
 
 def _differences(old: dict, new: dict) -> list[str]:
@@ -646,7 +657,10 @@ def prepare_output(out_dir: Path, cfg: BuildConfig, force: bool) -> dict:
     shards.remove_temporaries(out_dir)
     manifest = None if force else load_manifest(out_dir)
     found = list(_iidsu_shards(out_dir))
-    foreign = [p for p, meta in found if meta is None]
+    # Unreadable files named like this build's shards are damaged ones of ours (redone below).
+    foreign = [
+        p for p, meta in found if meta is None or (meta == {} and not _ours(p, out_dir, cfg))
+    ]
     if foreign:
         raise UserError(
             f"{out_dir} holds Parquet files that are not iidsu shards (e.g. {foreign[0]}); "

@@ -192,11 +192,13 @@ def test_rerun_keeps_finished_episodes_and_adopts_unrecorded_shards(tmp_path):
     recorded = [e for e in manifest["episodes"] if e["rows"]]
     recorded[0]["status"] = "pending"
     (out / recorded[1]["file"]).unlink()
+    (out / recorded[2]["file"]).write_bytes(b"PAR1 damaged")  # e.g. a disk error
     (out / "alpha" / "_alpha-7-0009.parquet.99.tmp").write_bytes(b"half")
     manifest["status"] = "building"
     (out / build.MANIFEST).write_text(json.dumps(manifest))
     report = fake_build(out)
-    assert report.new_frames == recorded[1]["rows"]  # only the missing episode was redone
+    # only the missing and the damaged episodes were redone
+    assert report.new_frames == recorded[1]["rows"] + recorded[2]["rows"]
     assert _content(out) == _content(tmp_path / "ref")
 
 
@@ -236,9 +238,13 @@ def test_two_builds_never_write_one_directory(tmp_path):
 
 def test_foreign_parquet_files_are_never_touched(tmp_path):
     pd.DataFrame({"a": [1]}).to_parquet(tmp_path / "mine.parquet")
-    with pytest.raises(UserError, match="not iidsu shards"):
-        build.build(fake_config(), tmp_path, runner=fake_runner, force=True, progress_bar=False)
-    assert (tmp_path / "mine.parquet").exists()
+    (tmp_path / "alpha").mkdir()
+    (tmp_path / "alpha" / "notes.parquet").write_bytes(b"not even parquet")
+    for name in ("alpha/notes.parquet", "mine.parquet"):
+        with pytest.raises(UserError, match=f"not iidsu shards \\(e.g. {tmp_path / name}\\)"):
+            build.build(fake_config(), tmp_path, runner=fake_runner, force=True, progress_bar=False)
+        assert (tmp_path / name).exists()
+        (tmp_path / name).rename(tmp_path / f"_{name.replace('/', '_')}")  # hidden from readers
 
 
 def _spawn_fake_build(out: Path, env_extra: dict) -> subprocess.Popen:
@@ -280,12 +286,12 @@ def test_sigkill_then_rerun_equals_an_uninterrupted_build(tmp_path):
 
 def test_ctrl_c_stops_cleanly_and_the_rerun_finishes(tmp_path):
     out = tmp_path / "out"
-    proc = _spawn_fake_build(out, {"FAKE_FRAME_SECONDS": "0.1"})  # 1.6 s an episode
+    proc = _spawn_fake_build(out, {"FAKE_FRAME_SECONDS": "0.15"})  # 2.4 s an episode
     _wait_for_shards(out, 2, proc)
     os.killpg(proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does
     t0 = time.monotonic()
     _, stderr = proc.communicate(timeout=30)
-    assert time.monotonic() - t0 < 1.5  # running episodes are stopped, not waited for
+    assert time.monotonic() - t0 < 2.0  # running episodes are stopped, not waited for
     assert proc.returncode == 130
     assert "run the same command again to resume" in stderr.decode()
     assert "Traceback" not in stderr.decode()

@@ -111,7 +111,7 @@ def make_optimizer(model: torch.nn.Module, cfg: TrainConfig) -> torch.optim.Adam
         {"params": [p for p in params if p.ndim >= 2], "weight_decay": cfg.weight_decay},
         {"params": [p for p in params if p.ndim < 2], "weight_decay": 0.0},
     ]
-    return torch.optim.AdamW(groups, lr=cfg.lr, fused=torch.cuda.is_available())
+    return torch.optim.AdamW(groups, lr=cfg.lr, fused=params[0].is_cuda)  # one kernel on GPUs
 
 
 def _all_sum(values: dict[str, torch.Tensor], proc: Process) -> dict[str, float]:
