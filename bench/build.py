@@ -98,9 +98,11 @@ def main() -> None:
         f"  {'CPU time in run_episode':<36} {cpu_s:8.1f} s  {1000 * cpu_s / frames:7.1f} ms/frame"
         f"  -> {args.workers} idle cores: {args.workers * frames / max(cpu_s, 1e-9):.1f} frames/s"
     )
-    load = os.getloadavg()[0]
-    if load > args.workers + 0.5:
-        print(f"  (load average {load:.1f}: the machine was shared, wall times include waiting)")
+    if stage.get("episode_s", 0.0) > 1.2 * cpu_s:
+        print(
+            f"  (episodes took {stage['episode_s'] / max(cpu_s, 1e-9):.1f}x their CPU time: the "
+            "machine was shared, wall times include waiting for a core)"
+        )
 
     print("\npeak memory per worker process (ru_maxrss):")
     for key, mb in sorted(report.peak_rss_mb.items()):

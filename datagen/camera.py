@@ -286,7 +286,8 @@ class Camera:
 
         # Light: ambient + sun (with shadows when sunny); walls see half the sky.
         sun = np.asarray(sun_dir, np.float32)
-        lambert = np.maximum(n @ sun, 0)
+        # (elementwise, not n @ sun: no BLAS threads in a worker process)
+        lambert = np.maximum(n[:, 0] * sun[0] + n[:, 1] * sun[1] + n[:, 2] * sun[2], 0)
         if cfg.shadows and weather.sun > 0.5:
             lit = np.flatnonzero(lambert > 0)
             o = np.take(pts, lit, axis=0) + np.take(n, lit, axis=0) * np.float32(0.03)
@@ -298,9 +299,8 @@ class Camera:
 
         # Wet surfaces: darker, and mirror the sky at grazing angles (Schlick, F0 = 0.04).
         if weather.wet > 0:
-            flat = np.flatnonzero(
-                (mat <= Material.SIDEWALK) & (n[:, 2] > 0.9)
-            )  # road, marking, sidewalk
+            # road, marking and sidewalk are materials 0..2
+            flat = np.flatnonzero((mat <= Material.SIDEWALK) & (n[:, 2] > 0.9))
             cos_view = np.abs(facing[flat])
             f = ((0.04 + 0.96 * (1 - cos_view) ** 5) * weather.wet)[:, None]
             colour[flat] = (

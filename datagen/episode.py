@@ -12,7 +12,8 @@ become rows. If the world ends early (route end, teleport, blocked ego) the fram
 full future are dropped and the table holds fewer than n_frames rows.
 
 Per frame (timed per stage in `stats["timing"]`): sim (SUMO steps to the next recorded state),
-scene (cull static tiles, actor boxes, one Embree commit), lidar (sweep + BEV histogram),
+scene (the agents' boxes and their Embree scene; the culled static scene again whenever the
+ego has moved SceneBuilder.REBUILD_M), lidar (sweep + BEV histogram),
 camera, labels (BEV semantic raster, boxes, waypoints), encode (JPEG, PNGs).
 """
 
@@ -131,6 +132,8 @@ class Sensors:
         lidar_rng, camera_rng, pose_rng, sun_rng = rng.spawn(4)
         self.lidar_rng, self.camera_rng, self.pose_rng = lidar_rng, camera_rng, pose_rng
         self.sun = camera.sun_direction(sun_rng)
+        if weather not in lidar.LIDAR_WEATHER:
+            raise ValueError(f"unknown weather {weather!r}; expected one of {schemas.WEATHERS}")
         self.lidar_weather = lidar.LIDAR_WEATHER[weather]
         self.camera_weather = camera.CAMERA_WEATHER[weather]
 

@@ -141,43 +141,55 @@ class Lidar:
         origin = np.array([ox, oy, self.config.mount_z_m], np.float32)
         return np.broadcast_to(origin, dirs.shape).copy(), dirs
 
-    def actor_rays(
-        self, scene: FrameScene, origin: np.ndarray, yaw_rad: float
-    ) -> np.ndarray | None:
-        """Indices of the rays that can hit an agent's bounding sphere (None: all of them, when
-        the sensor is inside one): the union of each sphere's elevation x azimuth window on the
-        beam x step grid."""
+    def actor_rays(self, scene: FrameScene, origin: np.ndarray, yaw_rad: float) -> np.ndarray:
+        """Indices of the rays that can hit an agent: the union over the agents of the beams x
+        azimuth steps spanned by the agent's box (5 cm margin) seen from the sensor.
+
+        Azimuths: the box's footprint corners (a convex polygon seen from outside spans the
+        angles of its vertices). Elevations: the box's bottom and top at its nearest and
+        farthest horizontal distance from the sensor."""
         cfg = self.config
         n_az = cfg.azimuth_steps
-        if not len(scene.agents):
-            return np.zeros(0, np.int64)
-        v = scene.actor_centres_m - origin
-        dist = np.linalg.norm(v, axis=1)
-        r = scene.actor_radii_m + 0.05
-        if (dist <= r).any():
-            return None
-        delta = np.arcsin(r / dist)
-        az = (np.arctan2(v[:, 1], v[:, 0]) - yaw_rad + math.pi) % (2 * math.pi)  # from -pi
-        el = np.arcsin(v[:, 2] / dist)
         up, lo = math.radians(cfg.upper_fov_deg), math.radians(cfg.lower_fov_deg)
         el_step = (up - lo) / max(cfg.channels - 1, 1)
         az_step = 2 * math.pi / n_az
-        k0 = np.clip(np.ceil((up - (el + delta)) / el_step), 0, cfg.channels).astype(int)
-        k1 = np.clip(np.floor((up - (el - delta)) / el_step), -1, cfg.channels - 1).astype(int)
-        # A cone of half-angle delta around elevation el spans asin(sin delta / cos el) of
-        # azimuth either side (a spherical cap), every azimuth once it reaches a pole.
-        s = np.sin(delta) / np.maximum(np.cos(el), 1e-9)
-        half = np.where(
-            (np.abs(el) + delta < math.pi / 2) & (s < 1), np.arcsin(np.minimum(s, 1)), 2 * math.pi
-        )
-        j0 = np.ceil((az - half) / az_step).astype(int)
-        j1 = np.floor((az + half) / az_step).astype(int)
+        ox, oy, oz = (float(v) for v in origin)
         mask = np.zeros((cfg.channels, n_az), bool)
-        for a in range(len(dist)):
-            if k1[a] < k0[a] or j1[a] < j0[a]:
+        signs = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]], np.float64)
+        for a in scene.agents:
+            c, s = math.cos(a.pose.yaw_rad), math.sin(a.pose.yaw_rad)
+            hl, hw = a.length_m / 2 + 0.05, a.width_m / 2 + 0.05
+            dx, dy = ox - a.pose.x_m, oy - a.pose.y_m
+            u, v = c * dx + s * dy, -s * dx + c * dy  # the sensor in the box's frame
+            d_min = math.hypot(max(abs(u) - hl, 0.0), max(abs(v) - hw, 0.0))
+            local = signs * (hl, hw)
+            rel = np.stack(
+                [
+                    a.pose.x_m + c * local[:, 0] - s * local[:, 1] - ox,
+                    a.pose.y_m + s * local[:, 0] + c * local[:, 1] - oy,
+                ],
+                1,
+            )
+            d_max = float(np.hypot(rel[:, 0], rel[:, 1]).max())
+            z_lo, z_hi = -0.05 - oz, a.height_m + 0.05 - oz
+            el_lo = math.atan2(z_lo, d_min if z_lo < 0 else d_max)
+            el_hi = math.atan2(z_hi, d_min if z_hi > 0 else d_max)
+            k0 = max(math.ceil((up - el_hi) / el_step), 0)
+            k1 = min(math.floor((up - el_lo) / el_step), cfg.channels - 1)
+            if k1 < k0:
                 continue
-            cols = np.arange(j0[a], j1[a] + 1) % n_az if j1[a] - j0[a] < n_az else slice(None)
-            mask[k0[a] : k1[a] + 1, cols] = True
+            if d_min == 0.0:  # the sensor is over the box: every azimuth
+                mask[k0 : k1 + 1] = True
+                continue
+            mid = math.atan2(-dy, -dx)
+            ang = np.arctan2(rel[:, 1], rel[:, 0])
+            diff = (ang - mid + math.pi) % (2 * math.pi) - math.pi
+            a0 = mid + diff.min() - yaw_rad + math.pi  # from the -pi ray
+            a1 = mid + diff.max() - yaw_rad + math.pi
+            j0, j1 = math.ceil(a0 / az_step), math.floor(a1 / az_step)
+            if j1 < j0:
+                continue
+            mask[k0 : k1 + 1, np.arange(j0, j1 + 1) % n_az] = True
         return np.flatnonzero(mask)
 
     def sweep(

@@ -32,8 +32,8 @@ third of the 50 ms frame budget. So the static scene is committed once and kept 
 has moved REBUILD_M (60 m: 15-20 ms per rebuild, ~1.4 ms per frame at 10 m/s; 40 m costs 0.38
 ms per metre driven, 60 m 0.27, 80 m 0.23 with a bigger scene to traverse), and the agents get
 their own small scene each frame (~1k triangles, <1 ms). Every sensor ray is cast into the static
-scene; only the rays that can hit an agent's bounding sphere (LiDAR: its elevation x azimuth
-window, ~10k of 64k rays; camera: its projected rectangle) are cast again into the actor scene,
+scene; only the rays that can hit an agent (LiDAR: its box's elevation x azimuth window, ~3k of
+64k rays; camera: its bounding sphere's projected rectangle) are cast again into the actor scene,
 bounded by their static hit (`dists=`), which costs ~0.5 ms a frame. bench/frame.py measures the
 result against bare Embree calls for the same rays.
 """
@@ -1061,8 +1061,8 @@ class FrameScene:
 
         Args:
             actor_rays: indices of the rays that may hit an agent (the sensor knows from the
-                agents' bounding spheres); None: all. Only these are cast into the actor scene,
-                bounded by their static hit.
+                agents' boxes or bounding spheres); None: all. Only these are cast into the
+                actor scene, bounded by their static hit.
         Returns:
             dist_m (N,) float32 (inf: no hit within max_dist_m), prim (N,) int32 (-1: none).
         """

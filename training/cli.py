@@ -51,6 +51,9 @@ _fraction = _checked(float, lambda v: 0 <= v < 1, "in [0, 1)")
 _workers = _checked(int, lambda v: v >= 0, "0 or more")
 
 
+DEVICES = ("auto", "cpu", "cuda")
+DEVICE_HELP = "auto: CUDA if present (bf16 autocast), else the CPU"
+
 # fit flags -> (config, field); a flag left out keeps the preset's (or checkpoint's) value.
 TRAIN_FLAGS = {
     "shards": "shards",
@@ -76,26 +79,43 @@ RESUMABLE = {"shards", "out", "epochs", "workers", "compile"}  # may change on -
 
 
 def _add_fit(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shards", help="shard directory (or one .parquet file); default data")
+    p.add_argument("--shards", metavar="DIR", help="shard directory or .parquet file (data)")
     p.add_argument(
         "--config", choices=sorted(PRESETS), help="preset: paper (default) or tiny (for CPUs)"
     )
-    p.add_argument("--out", help="run directory for last.pt and metrics.jsonl; default runs/iidsu")
-    p.add_argument("--epochs", type=_positive_int, help="epochs in all (paper preset: 30)")
-    p.add_argument("--batch-size", type=_positive_int, help="per process (paper: 32, tiny: 8)")
-    p.add_argument("--lr", type=_positive_float, help="peak learning rate (paper 1e-4)")
-    p.add_argument("--workers", type=_workers, help="DataLoader workers per process")
-    p.add_argument("--val-fraction", type=_fraction, help="share of episodes held out (0.1)")
+    p.add_argument("--out", metavar="DIR", help="run directory (runs/iidsu)")
+    p.add_argument(
+        "--epochs", type=_positive_int, metavar="N", help="epochs in all (paper preset: 30)"
+    )
+    p.add_argument(
+        "--batch-size", type=_positive_int, metavar="N", help="per process (paper: 32, tiny: 8)"
+    )
+    p.add_argument(
+        "--lr", type=_positive_float, metavar="F", help="peak learning rate (paper 1e-4)"
+    )
+    p.add_argument("--workers", type=_workers, metavar="N", help="DataLoader workers per process")
+    p.add_argument(
+        "--val-fraction", type=_fraction, metavar="F", help="share of episodes held out (0.1)"
+    )
     p.add_argument(
         "--val-towns",
         type=lambda s: tuple(t for t in s.split(",") if t),
+        metavar="A,B",
         help="hold out these towns' episodes instead (comma-separated)",
     )
-    p.add_argument("--seed", type=int, help="seed of weights, split and data order (0)")
-    p.add_argument("--output-px", type=_positive_int, help="R, side of the dense heads' maps")
+    p.add_argument(
+        "--seed", type=int, metavar="N", help="seed of weights, split and data order (0)"
+    )
+    p.add_argument(
+        "--output-px", type=_positive_int, metavar="R", help="R, side of the dense heads' maps"
+    )
     p.add_argument("--compile", action="store_true", default=None, help="torch.compile the model")
-    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
-    p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    p.add_argument("--device", choices=DEVICES, default="auto", help=DEVICE_HELP)
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue OUT/last.pt exactly; only --epochs, --shards, --workers, --compile may change",
+    )
     ablation = p.add_argument_group("ablations (the paper's Table III)")
     for flag, what in (
         ("--no-detection", "object density (detection & prediction) head"),
@@ -158,17 +178,21 @@ def _run_fit(args) -> int:
 
 def _add_eval(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ckpt", required=True, help="checkpoint written by train fit")
-    p.add_argument("--shards", required=True, help="shard directory (or one .parquet file)")
+    p.add_argument(
+        "--shards", required=True, metavar="DIR", help="shard directory (or one .parquet file)"
+    )
     p.add_argument(
         "--split",
         choices=("all", "val"),
         default="all",
         help="all frames (default; for a held-out directory) or the fit's validation episodes",
     )
-    p.add_argument("--out", help="JSON file for the metrics; default CKPT's stem + .eval.json")
-    p.add_argument("--batch-size", type=_positive_int, default=16)
-    p.add_argument("--workers", type=_workers, default=2)
-    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    p.add_argument(
+        "--out", metavar="JSON", help="JSON file for the metrics; default CKPT's stem + .eval.json"
+    )
+    p.add_argument("--batch-size", type=_positive_int, default=16, metavar="N")
+    p.add_argument("--workers", type=_workers, default=2, metavar="N")
+    p.add_argument("--device", choices=DEVICES, default="auto", help=DEVICE_HELP)
 
 
 def _run_eval(args) -> int:
@@ -179,11 +203,15 @@ def _run_eval(args) -> int:
 
 def _add_analyze(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ckpt", required=True, help="checkpoint written by train fit")
-    p.add_argument("--shards", help="frames to average over; default the fit's --shards")
-    p.add_argument("--frames", type=_positive_int, default=256, help="at most this many (256)")
-    p.add_argument("--out", help="JSON file; default CKPT's stem + .analyze.json")
-    p.add_argument("--batch-size", type=_positive_int, default=16)
-    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    p.add_argument(
+        "--shards", metavar="DIR", help="frames to average over; default the fit's --shards"
+    )
+    p.add_argument(
+        "--frames", type=_positive_int, default=256, metavar="N", help="at most this many (256)"
+    )
+    p.add_argument("--out", metavar="JSON", help="JSON file; default CKPT's stem + .analyze.json")
+    p.add_argument("--batch-size", type=_positive_int, default=16, metavar="N")
+    p.add_argument("--device", choices=DEVICES, default="auto", help=DEVICE_HELP)
 
 
 def _run_analyze(args) -> int:
@@ -194,9 +222,11 @@ def _run_analyze(args) -> int:
 
 def _add_show(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ckpt", required=True, help="checkpoint written by train fit")
-    p.add_argument("--shards", required=True, help="shard directory (or one .parquet file)")
-    p.add_argument("--frame", type=int, default=0, help=f"frame number; {FRAME_ORDER}")
-    p.add_argument("--out", help="PNG to write; default show-FRAME.png beside CKPT")
+    p.add_argument(
+        "--shards", required=True, metavar="DIR", help="shard directory (or one .parquet file)"
+    )
+    p.add_argument("--frame", type=int, default=0, metavar="N", help=f"frame number; {FRAME_ORDER}")
+    p.add_argument("--out", metavar="PNG", help="PNG to write; default show-FRAME.png beside CKPT")
 
 
 def _run_show(args) -> int:
