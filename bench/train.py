@@ -2,12 +2,13 @@
 
     python bench/train.py              # ~1 minute on a 2-core laptop
     python bench/train.py --steps 50   # longer, steadier timings
+    python bench/train.py --shards data   # the loader on real frames
 
 1. tiny config on the CPU: training samples/s (forward, backward, AdamW step on an in-memory
    batch) and the process's peak resident memory;
 2. the loader: decoded samples/s with 0, 1 and 2 DataLoader workers, per worker, at the tiny
    (R = 64) and paper (R = 256) target resolutions, on synthetic shards (noise images: JPEG
-   decoding is slower than for real camera frames, so these are lower bounds);
+   decoding is slower than for real camera frames, so these are lower bounds) or `--shards`;
 3. `train fit --config tiny --epochs 1` end to end on 200 synthetic frames (the demo's size);
 4. the paper config's parameter count, and where CUDA is available, its training samples/s and
    peak GPU memory in bf16 on the GPU (compare with the loader's samples/s per worker to see how
@@ -18,13 +19,16 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import resource
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-import torch
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as `train` sets it (training/cli.py)
+
+import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests/
 
@@ -85,6 +89,7 @@ def loader_rate(root: Path, output_px: int, workers: int, n: int) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=20, help="timed training steps")
+    parser.add_argument("--shards", type=Path, help="measure the loader on these shards instead")
     args = parser.parse_args()
     print(f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads")
     with tempfile.TemporaryDirectory() as tmp:
@@ -101,10 +106,11 @@ def main() -> None:
             f"{peak_rss_mb():.0f} MB ({peak_rss_mb() - rss0:.0f} MB above the process before)"
         )
 
-        print("\n2. loader (decode JPEG/PNG + render targets), samples/s:")
+        where = args.shards or root
+        print(f"\n2. loader (decode JPEG/PNG + render targets) on {where}, samples/s:")
         for R in (64, 256):
             for workers in (0, 1, 2):
-                r = loader_rate(root, R, workers, n=200)
+                r = loader_rate(where, R, workers, n=200)
                 print(
                     f"   R={R:<3}  workers={workers}: {r:6.1f}  ({r / max(workers, 1):.1f} per worker)"
                 )
