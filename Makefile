@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q torch==2.13.0
-	$(BIN)/pip install -q -e '.[datagen,train,dev]'
+	$(BIN)/pip install -q -e '.[datagen,train,ray,dev]'
 	touch $(STAMP)
 
 lint: venv
