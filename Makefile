@@ -31,6 +31,7 @@ demo: venv
 
 bench: venv
 	$(BIN)/python bench/frame.py
+	$(BIN)/python bench/sim.py
 	$(BIN)/python bench/build.py
 	$(BIN)/python bench/train.py
 
