@@ -147,10 +147,14 @@ class _Stats:
     reasons: dict = field(default_factory=dict)
 
 
+def _yaw_from_sumo(angle_deg: float) -> float:
+    """SUMO's navigational angle (degrees, 0 = north, clockwise) -> yaw CCW from east, rad."""
+    return (math.radians(90.0 - angle_deg) + math.pi) % (2 * math.pi) - math.pi
+
+
 def _box_centre(x: float, y: float, angle_deg: float, length: float) -> Pose:
     """SUMO front-bumper position + navigational angle -> box-centre Pose (yaw CCW from east)."""
-    yaw = math.radians(90.0 - angle_deg)
-    yaw = (yaw + math.pi) % (2 * math.pi) - math.pi
+    yaw = _yaw_from_sumo(angle_deg)
     half = 0.5 * length
     return Pose(x - half * math.cos(yaw), y - half * math.sin(yaw), yaw)
 
@@ -611,7 +615,7 @@ class World:
         keep = np.concatenate([[True], np.hypot(step[:, 0], step[:, 1]) > 0.2])
         pts = pts[keep]
         if len(pts) < 2:
-            yaw = math.radians(90.0 - r[ls.VAR_ANGLE])
+            yaw = _yaw_from_sumo(r[ls.VAR_ANGLE])
             x, y = r[ls.VAR_POSITION]
             pts = np.array([[x, y], [x + math.cos(yaw), y + math.sin(yaw)]])
         seg = np.diff(pts, axis=0)

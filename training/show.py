@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 import torch
 
-from schemas import BEV_AHEAD_M, BEV_PX_PER_M, BEV_SIDE_M, BEV_SIZE_PX, WEATHERS
+from schemas import BEV_SIZE_PX, WEATHERS, ego_to_bev_px
 from training import data
 from training.checkpoint import load_checkpoint, model_from_checkpoint
 from training.errors import UserError
@@ -38,8 +38,7 @@ EGO_BOX = (1.0, 0.0, 0.0, 1.8, 4.5, 0.0)  # drawn only; the shards do not store 
 
 def _px(x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
     """Ego-frame points (m) -> OpenCV (column, row) pixel points on a panel, (N, 2) int32."""
-    col = (BEV_SIDE_M - np.asarray(y_m)) * BEV_PX_PER_M
-    row = (BEV_AHEAD_M - np.asarray(x_m)) * BEV_PX_PER_M
+    row, col = ego_to_bev_px(x_m, y_m)
     return np.stack([col, row], -1).round().astype(np.int32).reshape(-1, 2)
 
 
