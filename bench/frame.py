@@ -82,7 +82,7 @@ def main() -> None:
             image = sense.image(scene, frame)
             c4, t4 = time.process_time(), time.perf_counter()
             row = labels.frame_labels(frame, future, sweep.actor_hits)
-            semantic = labels.bev_semantic(static, frame.ego.pose)
+            semantic = labels.bev_semantic(static.label_map, frame.ego.pose)
             c5, t5 = time.process_time(), time.perf_counter()
             codecs.encode_image(image, cfg.jpeg_quality)
             codecs.encode_lidar_bev(bev)

@@ -26,7 +26,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from datagen.scene import FrameScene, Material, StaticScene, world_rays
+from datagen.mesh import Material
+from datagen.raycast import FrameScene, world_rays
+from datagen.scene import StaticScene
 from datagen.state import FrameState, Pose
 from schemas import IMAGE_FOV_DEG, IMAGE_FULL_H_PX, IMAGE_FULL_W_PX, IMAGE_SIZE_PX
 

@@ -29,7 +29,8 @@ import pyarrow as pa
 
 import schemas
 from datagen import camera, labels, lidar
-from datagen.scene import SCENE_VERSION, SceneBuilder, StaticScene, load_static_scene
+from datagen.raycast import SceneBuilder
+from datagen.scene import SCENE_VERSION, StaticScene, load_static_scene
 from datagen.state import FrameState
 from schemas import codecs
 
@@ -254,7 +255,7 @@ def _process(
     timer.lap("camera")
     future = states[k + 1 : k + 1 + FUTURE]
     row = labels.frame_labels(frame, future, sweeps[k].actor_hits)
-    semantic = labels.bev_semantic(sense.static, frame.ego.pose)
+    semantic = labels.bev_semantic(sense.static.label_map, frame.ego.pose)
     timer.lap("labels")
     row.update(
         episode_id=spec.episode_id,

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from datagen.scene import FrameScene, world_rays
+from datagen.raycast import FrameScene, world_rays
 from datagen.state import Pose
 from schemas import (
     BEV_AHEAD_M,

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from datagen import camera
-from datagen.scene import SceneBuilder
+from datagen.raycast import SceneBuilder
 from datagen.state import Pose
 from tests.test_scene import EGO_POSE, agent_at, flat_scene, frame_at, shared_grid3
 
