@@ -38,16 +38,21 @@ HISTORY = 2  # past sweeps in the LiDAR BEV (t-1, t-2)
 FUTURE = labels.FUTURE_FRAMES  # 4 future states for +2.0 s waypoints
 STAGES = ("sim", "scene", "lidar", "camera", "labels", "encode")
 
+DATA_VERSION = 2
+"""What the generator writes, beyond the scene (bump it with every change of shard bytes for the
+same seed; tests/test_identical.py pins them; data/_README.md lists the changes):
+1 the first release; 2 PNG columns encoded with no/UP row filter + RLE (same decoded arrays)."""
+
 
 def generator_version() -> str:
-    """What made the data: the package version and the static scene's version."""
+    """What made the data: the package version, the static scene's and the data's version."""
     try:
         from importlib.metadata import version
 
         v = version("iidsu")
     except Exception:  # noqa: BLE001  (a source checkout without installed metadata)
         v = "0+unknown"
-    return f"iidsu {v}, scene v{SCENE_VERSION}"
+    return f"iidsu {v}, scene v{SCENE_VERSION}, data v{DATA_VERSION}"
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 by the sha256 of its shard files, so a pure speed-up or a pure move cannot change the data.
 
 How to update the stored hashes: ONLY together with a change of what the data is, i.e. a bump
-of the generator version (datagen.episode.GENERATOR_VERSION / scene.SCENE_VERSION) or of the
+of the generator version (datagen.episode.DATA_VERSION / scene.SCENE_VERSION) or of the
 schema version, documented in data/_README.md. Run
     PYTHONPATH=$PWD .venv/bin/python -m tests.test_identical
 which prints the new digests (and one per column, to see what changed), and paste them below.
@@ -28,9 +28,9 @@ EPISODES = (
     ("grid3-3-0", 3, "sunny", "normal", 5),
     ("grid3-8-1", 8, "rainy", "aggressive", 3),
 )
-EXPECTED_SHA256 = {
-    "grid3-3-0": "32cfdc89d13b556e80c1f83bba0c4e86ec7b53cff6f6f07792e1fc8b9e9cee3d",
-    "grid3-8-1": "bbe33b6eb2e5c4732b1a5b6ce768adddebbb95e4b8b640e3ad4d7b46aeba526b",
+EXPECTED_SHA256 = {  # data v2
+    "grid3-3-0": "da622ffbfbae7673835aa3331a12a17db0f2990ca3faebc85c767d8a142bba1e",
+    "grid3-8-1": "2f3f59ca2a3e68750435cee2a5299d22d2649a3f59b6a223dcdc8cf9b91ddec6",
 }
 
 
