@@ -109,7 +109,7 @@ def main() -> None:
             sensor_cpu.append(c4 - c2)
             # sensor rays: the static-scene calls (the actor scene re-casts a subset of them)
             rays.append(sum(len(o) for e, _, o, _, _ in scene.ray_log if e is scene.static_embree))
-            tris.append(len(scene.actor))
+            tris.append(scene.n_static + len(scene.actors.triangles_m))
             del row
 
     med = {k: 1e3 * float(np.median(v)) for k, v in stages.items() if v}

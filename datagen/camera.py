@@ -262,11 +262,10 @@ class Camera:
         p = prim[hi]
         d = np.take(dirs, hi, axis=0)  # np.take: ~4x faster than fancy indexing for rows
         t = dist[hi]
-        n = np.take(scene.normals, p, axis=0)
+        n, albedo, mat, tags = scene.surface(p)
         facing = n[:, 0] * d[:, 0] + n[:, 1] * d[:, 1] + n[:, 2] * d[:, 2]
         n *= np.where(facing > 0, np.float32(-1), np.float32(1))[:, None]  # towards the camera
-        albedo = np.take(scene.colour_rgb, p, axis=0).astype(np.float32)  # 0..255
-        mat = scene.material[p]
+        albedo = albedo.astype(np.float32)  # 0..255
         pts = origins[0] + d * t[:, None]
 
         # Procedural windows on building walls.
@@ -304,7 +303,7 @@ class Camera:
         # Lamps glow (unshaded) in their signal's colour.
         lamp = np.flatnonzero(mat == Material.LAMP)
         if len(lamp):
-            tag = scene.tag[p[lamp]]
+            tag = tags[lamp]
             head, slot = tag // 3, tag % 3
             on = np.zeros(len(lamp), bool) if lamps is None else lamps[head] == slot
             colour[lamp] = LAMP_RGB[slot] * np.where(on, 1.0, 0.18)[:, None].astype(np.float32)

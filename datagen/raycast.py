@@ -1,7 +1,10 @@
 """Ray casting with Embree: one frame's scene (a culled static part kept across frames, and
 this frame's actors) and the world-frame rays of a sensor.
 
-Culling. datagen/scene.py sorts the static triangles into square tiles (TILE_M) by centroid;
+Whole towns. A town of up to WHOLE_TOWN_MAX_TRIANGLES is committed once per worker process and
+reused by every episode there (`town_embree`): no BVH build per episode, none as the ego drives.
+
+Culling (larger towns). datagen/scene.py sorts the static triangles into square tiles (TILE_M) by centroid;
 each tile knows how far its triangles reach from its centre. A frame's static Embree scene holds only the tiles within the
 sensors' reach (the camera's 150 m plus its mount) plus SceneBuilder.REBUILD_M, so the cost per
 frame does not grow with the town.
@@ -23,11 +26,13 @@ result against bare Embree calls for the same rays.
 from __future__ import annotations
 
 import math
+import weakref
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
 
-from datagen.actors import actor_mesh
+from datagen.actors import ActorMesh, actor_mesh
 from datagen.scene import StaticScene
 from datagen.state import AgentState, FrameState, Pose
 
@@ -57,16 +62,20 @@ def _embree_scene(triangles_m: np.ndarray):
 
 @dataclass
 class FrameScene:
-    """The scene of one frame: a static Embree scene (tiles around the ego, kept across frames)
-    and an actor scene (this frame's agents), cast in turn.
+    """The scene of one frame: a static Embree scene (the town, committed once per process, or
+    for a very large town the tiles around the ego) and an actor scene (this frame's agents),
+    cast in turn.
 
-    Primitive ids are unified: 0..n_static-1 are static triangles, n_static.. actor triangles.
+    Primitive ids are unified: 0..n_static-1 are static triangles, n_static.. actor triangles;
+    `surface(prim)` and `actor_of(prim)` read their attributes without concatenating the
+    static arrays with the actors' every frame.
 
     Attributes:
         static_embree, actor_embree: committed embreex scenes (actor_embree None: no agents).
-        normals: (N, 3) float32; colour_rgb: (N, 3) uint8; material: (N,) uint8;
-        tag: (N,) int32 lamp tags (-1 elsewhere); actor: (N,) int32 agent index, -1 if static.
-        n_static: the first n_static primitives are static.
+        static_normals: (S, 3) float32; static_colour_rgb: (S, 3) uint8; static_material: (S,)
+            uint8; static_tag: (S,) int32 lamp tags (-1 elsewhere): the static primitives'.
+        actors: this frame's actor triangles (ActorMesh; its `actor` is the agent index).
+        n_static: the first n_static primitives are static (S).
         agents: the agents in the actor scene, in actor-index order.
         actor_centres_m: (A, 3) float64 world centres of the agents' bounding spheres.
         actor_radii_m: (A,) float64 their radii (half the box diagonal).
@@ -76,16 +85,44 @@ class FrameScene:
 
     static_embree: object
     actor_embree: object | None
-    normals: np.ndarray
-    colour_rgb: np.ndarray
-    material: np.ndarray
-    tag: np.ndarray
-    actor: np.ndarray
+    static_normals: np.ndarray
+    static_colour_rgb: np.ndarray
+    static_material: np.ndarray
+    static_tag: np.ndarray
+    actors: ActorMesh
     n_static: int
     agents: tuple[AgentState, ...]
     actor_centres_m: np.ndarray
     actor_radii_m: np.ndarray
     ray_log: list | None = None
+
+    def surface(self, prim: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Attributes of primitives `prim` ((n,) int, all >= 0): normals (n, 3) float32, colour
+        (n, 3) uint8, material (n,) uint8, lamp tag (n,) int32 (-1 for actors)."""
+        static = (self.static_normals, self.static_colour_rgb, self.static_material)
+        dyn = np.flatnonzero(prim >= self.n_static)
+        if not len(dyn):  # np.take on rows: ~4x faster than fancy indexing
+            out = [np.take(a, prim, axis=0) for a in static]
+            return out[0], out[1], out[2], np.take(self.static_tag, prim)
+        st = np.flatnonzero(prim < self.n_static)
+        ps, pd = prim[st], prim[dyn] - self.n_static
+        am = self.actors
+        out = []
+        for a_static, a_dyn in zip(static, (am.normals, am.colour_rgb, am.material)):
+            o = np.empty((len(prim), *a_static.shape[1:]), a_static.dtype)
+            o[st] = np.take(a_static, ps, axis=0)
+            o[dyn] = np.take(a_dyn, pd, axis=0)
+            out.append(o)
+        tag = np.full(len(prim), -1, np.int32)
+        tag[st] = np.take(self.static_tag, ps)
+        return out[0], out[1], out[2], tag
+
+    def actor_of(self, prim: np.ndarray) -> np.ndarray:
+        """(n,) int32 index into `agents` of each primitive's agent; -1 static or no hit."""
+        out = np.full(len(prim), -1, np.int32)
+        dyn = np.flatnonzero(prim >= self.n_static)
+        out[dyn] = self.actors.actor[prim[dyn] - self.n_static]
+        return out
 
     def _run(self, scene, origins, directions, dists, query="INTERSECT", output=None):
         if self.ray_log is not None:
@@ -154,7 +191,7 @@ class FrameScene:
                     output=1,
                 )
                 hit = a["primID"] >= 0
-                actor[idx[hit]] = self.actor[a["primID"][hit] + self.n_static]
+                actor[idx[hit]] = self.actors.actor[a["primID"][hit]]
                 dist[idx[hit]] = a["tfar"][hit]
         dist[dist >= max_dist_m] = np.inf
         return dist, actor
@@ -184,25 +221,62 @@ class FrameScene:
         return hit
 
 
+WHOLE_TOWN_MAX_TRIANGLES = 150_000
+"""Towns up to this size are committed whole, once per process; larger ones are culled. Measured
+(this 2-core box, loaded): a whole-town commit costs ~4 us a triangle once (66k: ~0.15 s; 221k
+and 249k: ~1 s), a culled one ~50 ms per REBUILD_M driven (~4 per 60-frame episode). So a small
+town (grid_small, downtown, spider, arterial, roundabout: 51-73k) is cheaper whole from the
+first episode, a large one (random_city, suburb, mixed) only after several episodes per worker.
+Both give the same hits (checked byte for byte on downtown, random_city and mixed)."""
+TOWN_CACHE_SIZE = 8  # committed towns kept per process (all built-in towns)
+
+_towns: OrderedDict[int, tuple[weakref.ref, object]] = OrderedDict()
+town_commits = 0  # how many whole-town scenes this process has committed (tests, bench)
+
+
+def town_embree(static: StaticScene):
+    """The committed Embree scene of a whole town (primitive id = row of static.triangles_m),
+    built on first use and kept per process (LRU of TOWN_CACHE_SIZE towns), so every episode in
+    a worker reuses it: no per-episode BVH build and no rebuild as the ego drives."""
+    global town_commits
+    key = id(static)
+    hit = _towns.get(key)
+    if hit is not None and hit[0]() is static:
+        _towns.move_to_end(key)
+        return hit[1]
+    scene = _embree_scene(static.triangles_m)
+    town_commits += 1
+    _towns[key] = (weakref.ref(static), scene)
+    while len(_towns) > TOWN_CACHE_SIZE:
+        _towns.popitem(last=False)
+    return scene
+
+
 class SceneBuilder:
     """Builds each frame's `FrameScene` from a static scene.
 
-    The static Embree scene holds every tile within `reach_m` + REBUILD_M of the ego and is
-    rebuilt only when the ego has moved REBUILD_M from where it was built, so the sensors' reach
-    (`reach_m`: the longer of the LiDAR and camera ranges, plus the mounts' offset) is always
-    covered. The actor scene is built every frame from the agents within reach (never the ego).
+    A town of at most WHOLE_TOWN_MAX_TRIANGLES is one static Embree scene per process
+    (`town_embree`). A larger one is culled: the static Embree scene holds every tile within
+    `reach_m` + REBUILD_M of the ego and is rebuilt only when the ego has moved REBUILD_M from
+    where it was built, so the sensors' reach (`reach_m`: the longer of the LiDAR and camera
+    ranges, plus the mounts' offset) is always covered. Both give the same hits: every triangle
+    a ray can reach is in either scene. The actor scene is built every frame from the agents
+    within reach (never the ego).
     """
 
     REBUILD_M = 60.0  # measured trade-off, see the module docstring
 
-    def __init__(self, static: StaticScene, reach_m: float):
+    def __init__(
+        self, static: StaticScene, reach_m: float, whole_town_max: int = WHOLE_TOWN_MAX_TRIANGLES
+    ):
         self.static = static
         self.reach_m = reach_m
+        self.whole_town = static.n_triangles <= whole_town_max
         self._centres = static.tile_centres_m()
         self._nonempty = np.diff(static.tile_start) > 0
         self._built_at: np.ndarray | None = None
         self._static = None
-        self.rebuilds = 0
+        self.rebuilds = 0  # culled static scenes built (0 for a whole town)
 
     def visible_tiles(self, xy_m: np.ndarray, radius_m: float) -> np.ndarray:
         """Indices of the non-empty tiles holding a triangle within radius_m of xy_m."""
@@ -211,9 +285,13 @@ class SceneBuilder:
         return np.flatnonzero((r <= radius_m + self.static.tile_reach_m) & self._nonempty)
 
     def _static_part(self, pose: Pose):
+        st = self.static
+        if self.whole_town:
+            if self._static is None:
+                self._static = (town_embree(st), st.normals, st.colour_rgb, st.material, st.tag)
+            return self._static
         xy = np.array([pose.x_m, pose.y_m])
         if self._built_at is None or np.hypot(*(xy - self._built_at)) > self.REBUILD_M:
-            st = self.static
             tiles = self.visible_tiles(xy, self.reach_m + self.REBUILD_M)
             starts, ends = st.tile_start[tiles], st.tile_start[tiles + 1]
             lens = ends - starts
@@ -245,16 +323,15 @@ class SceneBuilder:
         radii = np.array(
             [0.5 * math.sqrt(a.length_m**2 + a.width_m**2 + a.height_m**2) for a in agents]
         )
-        n_static, n_dyn = len(normals), len(actors.triangles_m)
         return FrameScene(
             static_embree=embree,
-            actor_embree=_embree_scene(actors.triangles_m) if n_dyn else None,
-            normals=np.concatenate([normals, actors.normals]),
-            colour_rgb=np.concatenate([colour, actors.colour_rgb]),
-            material=np.concatenate([material, actors.material]),
-            tag=np.concatenate([tag, np.full(n_dyn, -1, np.int32)]),
-            actor=np.concatenate([np.full(n_static, -1, np.int32), actors.actor]),
-            n_static=n_static,
+            actor_embree=_embree_scene(actors.triangles_m) if len(actors.triangles_m) else None,
+            static_normals=normals,
+            static_colour_rgb=colour,
+            static_material=material,
+            static_tag=tag,
+            actors=actors,
+            n_static=len(normals),
             agents=agents,
             actor_centres_m=centres,
             actor_radii_m=radii,

@@ -29,6 +29,7 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -737,7 +738,8 @@ def _from_arrays(z, sha: str) -> StaticScene:
     )
 
 
-_loaded: dict[str, StaticScene] = {}
+_loaded: OrderedDict[str, StaticScene] = OrderedDict()
+LOADED_TOWNS = 8  # static scenes kept per process (LRU; all built-in towns: ~100 MB at most)
 
 
 def load_static_scene(net_path: Path | str, cache_dir: Path | None = None) -> StaticScene:
@@ -748,6 +750,7 @@ def load_static_scene(net_path: Path | str, cache_dir: Path | None = None) -> St
     sha = network_sha256(Path(net_path))
     key = f"{sha}-v{SCENE_VERSION}"
     if key in _loaded:
+        _loaded.move_to_end(key)
         return _loaded[key]
     cache = Path(cache_dir) if cache_dir is not None else scene_cache_dir()
     path = cache / f"{key}.npz"
@@ -764,6 +767,7 @@ def load_static_scene(net_path: Path | str, cache_dir: Path | None = None) -> St
         part = path.with_name(f".{path.stem}.{os.getpid()}.part.npz")
         np.savez(part, **_to_arrays(scene))
         os.replace(part, path)
-    _loaded.clear()  # one town per worker at a time keeps memory flat
-    _loaded[key] = scene
+    _loaded[key] = scene  # kept, so that raycast.town_embree reuses its Embree scene too
+    while len(_loaded) > LOADED_TOWNS:
+        _loaded.popitem(last=False)
     return scene

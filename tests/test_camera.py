@@ -53,7 +53,7 @@ def test_box_appears_at_the_expected_pixels():
     empty, _, _ = _render(flat_scene(), frame_at())
     origins, dirs = cam.rays(frame.ego.pose)
     _, prim = fs.cast(origins, dirs, CFG.range_m)
-    is_car = (prim >= 0) & (fs.actor[np.maximum(prim, 0)] == 0)
+    is_car = (prim >= 0) & (fs.actor_of(prim) == 0)
     is_car = is_car.reshape(256, 256)
     # the box's centre projects onto a car pixel, and the car's pixels sit where the box is
     r, c = project(15.0, 2.5, 0.9)
@@ -164,5 +164,5 @@ def test_actor_pixel_window_loses_no_hits():
     d_win, p_win = fs.cast(origins, dirs, CFG.range_m, window)
     np.testing.assert_array_equal(p_all, p_win)
     np.testing.assert_array_equal(d_all, d_win)
-    seen = set(fs.actor[p_all[p_all >= fs.n_static]].tolist())
+    seen = set(fs.actor_of(p_all[p_all >= fs.n_static]).tolist())
     assert {0, 1, 3} <= seen  # ahead, beside (partly in view), the pedestrian

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from datagen import actors, scene
+from datagen import actors, raycast, scene
 from datagen.mesh import Material, boxes_triangles
 from datagen.raycast import SceneBuilder
 from datagen.scene import MeshBuilder
@@ -237,12 +237,23 @@ def test_frame_scene_excludes_the_ego_and_far_agents():
     far = agent_at("far", 400.0, 0.0)
     fs = SceneBuilder(st, reach_m=100.0).build(frame_at(agents=(near, far)))
     assert [a.track_id for a in fs.agents] == ["near"]
-    assert (fs.actor[: fs.n_static] == -1).all() and (fs.actor[fs.n_static :] == 0).all()
+    assert (fs.actors.actor == 0).all() and fs.n_static == st.n_triangles
 
 
-def test_static_scene_is_reused_until_the_ego_moves_away():
+def test_a_town_is_committed_once_per_process_and_reused_across_episodes():
     st = flat_scene()
-    builder = SceneBuilder(st, reach_m=100.0)
+    before = raycast.town_commits
+    for _episode in range(3):
+        builder = SceneBuilder(st, reach_m=100.0)
+        for k in range(3):
+            builder.build(frame_at(Pose(EGO_POSE.x_m + 70 * k, EGO_POSE.y_m, 0.0)))
+        assert builder.rebuilds == 0
+    assert raycast.town_commits == before + 1
+
+
+def test_culled_static_scene_is_reused_until_the_ego_moves_away():
+    st = flat_scene()
+    builder = SceneBuilder(st, reach_m=100.0, whole_town_max=0)
     builder.build(frame_at(Pose(EGO_POSE.x_m, EGO_POSE.y_m, 0.0)))
     builder.build(frame_at(Pose(EGO_POSE.x_m + 10, EGO_POSE.y_m, 1.0)))
     assert builder.rebuilds == 1
