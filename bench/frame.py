@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from datagen import episode, labels  # noqa: E402
+from datagen import episode, labels, lidar  # noqa: E402
 from datagen.scene import load_static_scene  # noqa: E402
 from datagen.towns import town_net_path  # noqa: E402
 from datagen.world import World, WorldConfig  # noqa: E402
@@ -77,7 +77,8 @@ def main() -> None:
             c2, t2 = time.process_time(), time.perf_counter()
             sweep = sense.sweep(scene, frame)
             sweeps = [sweep, *sweeps][: episode.HISTORY + 1]
-            bev = sense.lidar_bev(sweeps)
+            counts = sense.lidar_counts(sweeps)
+            bev, ground_t = lidar.lidar_bev_channels(counts), lidar.ground_channel(counts)
             c3, t3 = time.process_time(), time.perf_counter()
             image = sense.image(scene, frame)
             c4, t4 = time.process_time(), time.perf_counter()
@@ -86,6 +87,7 @@ def main() -> None:
             c5, t5 = time.process_time(), time.perf_counter()
             codecs.encode_image(image, cfg.jpeg_quality)
             codecs.encode_lidar_bev(bev)
+            codecs.encode_lidar_ground(ground_t)
             codecs.encode_bev_semantic(semantic)
             c6, t6 = time.process_time(), time.perf_counter()
             if k - labels.FUTURE_FRAMES < args.skip:

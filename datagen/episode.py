@@ -38,10 +38,11 @@ HISTORY = 2  # past sweeps in the LiDAR BEV (t-1, t-2)
 FUTURE = labels.FUTURE_FRAMES  # 4 future states for +2.0 s waypoints
 STAGES = ("sim", "scene", "lidar", "camera", "labels", "encode")
 
-DATA_VERSION = 2
+DATA_VERSION = 3
 """What the generator writes, beyond the scene (bump it with every change of shard bytes for the
 same seed; tests/test_identical.py pins them; data/_README.md lists the changes):
-1 the first release; 2 PNG columns encoded with no/UP row filter + RLE (same decoded arrays)."""
+1 the first release; 2 PNG columns encoded with no/UP row filter + RLE (same decoded arrays);
+3 the `lidar_ground_t` column (schema 1.1)."""
 
 
 def generator_version() -> str:
@@ -149,8 +150,9 @@ class Sensors:
     def sweep(self, scene, frame: FrameState) -> lidar.Sweep:
         return self.lidar.sweep(scene, frame.ego.pose, self.lidar_weather, self.lidar_rng)
 
-    def lidar_bev(self, sweeps: list[lidar.Sweep]) -> np.ndarray:
-        return lidar.bev_histogram(
+    def lidar_counts(self, sweeps: list[lidar.Sweep]) -> np.ndarray:
+        """(5, 256, 256) BEV hit counts of the sweeps at t, t-1, t-2 (lidar.bev_counts)."""
+        return lidar.bev_counts(
             sweeps,
             self.config.lidar.ground_threshold_m,
             self.pose_rng,
@@ -254,7 +256,8 @@ def _process(
     if k < HISTORY:
         timer.lap("lidar")
         return None
-    bev = sense.lidar_bev([sweeps[k - j] for j in range(HISTORY + 1)])
+    counts = sense.lidar_counts([sweeps[k - j] for j in range(HISTORY + 1)])
+    bev, ground_t = lidar.lidar_bev_channels(counts), lidar.ground_channel(counts)
     timer.lap("lidar")
     image = sense.image(scene, frame)
     timer.lap("camera")
@@ -269,6 +272,7 @@ def _process(
         behaviour=spec.behaviour,
         image=codecs.encode_image(image, sense.config.jpeg_quality),
         lidar_bev=codecs.encode_lidar_bev(bev),
+        lidar_ground_t=codecs.encode_lidar_ground(ground_t),
         bev_semantic=codecs.encode_bev_semantic(semantic),
     )
     timer.lap("encode")

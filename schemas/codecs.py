@@ -2,6 +2,7 @@
 
 - `image`: JPEG of an RGB uint8 (256, 256, 3) array.
 - `lidar_bev`: 4-channel PNG whose RGBA samples are ch0..ch3 in order, uint8 (256, 256, 4).
+- `lidar_ground_t`: 1-channel PNG of counts, uint8 (256, 256).
 - `bev_semantic`: 1-channel PNG of class ids, uint8 (256, 256).
 All decoders return arrays in the documented channel order (RGB, ch0..ch3), not OpenCV's BGR.
 
@@ -55,6 +56,24 @@ def decode_lidar_bev(data: bytes) -> np.ndarray:
     if bgra is None or bgra.ndim != 3 or bgra.shape[2] != 4:
         raise ValueError("not a 4-channel PNG")
     return cv2.cvtColor(bgra, cv2.COLOR_BGRA2RGBA)
+
+
+def encode_lidar_ground(counts: np.ndarray) -> bytes:
+    """(H, W) uint8 counts -> 1-channel PNG (the `lidar_ground_t` column)."""
+    if counts.dtype != np.uint8 or counts.ndim != 2:
+        raise ValueError(f"lidar_ground_t must be (H, W) uint8, got {counts.shape} {counts.dtype}")
+    ok, buf = cv2.imencode(".png", counts, LIDAR_PNG_PARAMS)
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def decode_lidar_ground(data: bytes) -> np.ndarray:
+    """PNG bytes -> (H, W) uint8 counts."""
+    counts = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if counts is None or counts.ndim != 2:
+        raise ValueError("not a 1-channel PNG")
+    return counts
 
 
 def encode_bev_semantic(classes: np.ndarray) -> bytes:

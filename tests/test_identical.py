@@ -28,9 +28,9 @@ EPISODES = (
     ("grid3-3-0", 3, "sunny", "normal", 5),
     ("grid3-8-1", 8, "rainy", "aggressive", 3),
 )
-EXPECTED_SHA256 = {  # data v2
-    "grid3-3-0": "da622ffbfbae7673835aa3331a12a17db0f2990ca3faebc85c767d8a142bba1e",
-    "grid3-8-1": "2f3f59ca2a3e68750435cee2a5299d22d2649a3f59b6a223dcdc8cf9b91ddec6",
+EXPECTED_SHA256 = {  # data v3, schema 1.1
+    "grid3-3-0": "cea9640901e7a2b883959f64d74c6c50958ac528132bebc45a24f06cb4f9a782",
+    "grid3-8-1": "7c66b7a6f8d819777074373421fbe70593ae3b8b6219f852b6203866aa6bd0b4",
 }
 
 

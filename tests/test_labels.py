@@ -131,6 +131,7 @@ def test_a_row_of_labels_satisfies_the_schema():
         behaviour="cautious",
         image=codecs.encode_image(np.zeros((256, 256, 3), np.uint8)),
         lidar_bev=codecs.encode_lidar_bev(np.zeros((256, 256, 4), np.uint8)),
+        lidar_ground_t=codecs.encode_lidar_ground(np.zeros((256, 256), np.uint8)),
         bev_semantic=codecs.encode_bev_semantic(np.zeros((256, 256), np.uint8)),
     )
     meta = schemas.file_metadata(generator_version="t", config={}, network_sha256="0" * 64, seed=0)
