@@ -38,11 +38,12 @@ HISTORY = 2  # past sweeps in the LiDAR BEV (t-1, t-2)
 FUTURE = labels.FUTURE_FRAMES  # 4 future states for +2.0 s waypoints
 STAGES = ("sim", "scene", "lidar", "camera", "labels", "encode")
 
-DATA_VERSION = 3
+DATA_VERSION = 4
 """What the generator writes, beyond the scene (bump it with every change of shard bytes for the
 same seed; tests/test_identical.py pins them; data/_README.md lists the changes):
 1 the first release; 2 PNG columns encoded with no/UP row filter + RLE (same decoded arrays);
-3 the `lidar_ground_t` column (schema 1.1)."""
+3 the `lidar_ground_t` column (schema 1.1); 4 every signal head lit with its own light's real
+state at any distance (was: only the heads showing the ego's governing light within 30 m)."""
 
 
 def generator_version() -> str:
@@ -161,7 +162,7 @@ class Sensors:
         )
 
     def image(self, scene, frame: FrameState) -> np.ndarray:
-        lamps = camera.lit_slots(self.static, frame)
+        lamps = camera.lit_slots(self.static, frame, self.config.camera.range_m + 10.0)
         return self.camera.render(
             scene, frame.ego.pose, self.camera_weather, self.camera_rng, self.sun, lamps
         )

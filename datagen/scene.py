@@ -40,7 +40,8 @@ import numpy as np
 from datagen.labelmap import LabelMap
 from datagen.mesh import Material, boxes_triangles, triangle_normals
 
-SCENE_VERSION = 1  # bump to invalidate every cached static scene after a change here
+SCENE_VERSION = 2  # bump to invalidate every cached static scene after a change here
+# 2: each signal head knows its traffic light and the links it shows (head_tls, head_link_*)
 TILE_M = 32.0  # culling tile size
 
 SIDEWALK_HEIGHT_M = 0.12
@@ -225,6 +226,12 @@ class StaticScene:
             centre in the plane, m.
         head_xy_m: (H, 2) float32 signal-head positions, world frame.
         head_yaw_rad: (H,) float32 the direction each head faces (towards its approach).
+        head_tls: (H,) str, the SUMO traffic light each head belongs to ("" if unknown).
+        head_link_start: (H + 1,) int64, head h shows the links
+            head_link_index[head_link_start[h]:head_link_start[h+1]] of its traffic light:
+            every link leaving its approach edge's car lanes (indices into the light's state
+            string, libsumo trafficlight.getRedYellowGreenState).
+        head_link_index: (L,) int32.
         label_map: the BEV polygons the semantic labels are painted from.
         network_sha256: the network this scene was built from.
     """
@@ -240,6 +247,9 @@ class StaticScene:
     tile_reach_m: np.ndarray
     head_xy_m: np.ndarray
     head_yaw_rad: np.ndarray
+    head_tls: np.ndarray
+    head_link_start: np.ndarray
+    head_link_index: np.ndarray
     label_map: LabelMap
     network_sha256: str
 
@@ -298,6 +308,7 @@ def build_static_scene(net_path: Path | str, network_sha256: str = "") -> Static
     cutouts: list[np.ndarray] = []
     occupied: list[np.ndarray] = []  # rings nothing may be built on
     heads: list[tuple[float, float, float]] = []  # x, y, facing yaw
+    head_links: list[tuple[str, tuple[int, ...]]] = []  # per head: light id, link indices
     stop_posts: list[tuple[float, float, float]] = []
 
     edges = net.getEdges(withInternal=True)
@@ -408,12 +419,22 @@ def build_static_scene(net_path: Path | str, network_sha256: str = "") -> Static
                     side = outer + FURNITURE_SIDE_OFFSET_M
                 near = end + right * side - fwd * 0.5
                 if tls:
+                    links = [
+                        (c.getTLSID(), c.getTLLinkIndex())
+                        for ln in car_lanes
+                        for c in ln.getOutgoing()
+                        if c.getTLSID()
+                    ]
+                    tls_id = links[0][0] if links else ""
+                    shown = (tls_id, tuple(sorted({i for t, i in links if t == tls_id})))
                     heads.append((near[0], near[1], heading + math.pi))
+                    head_links.append(shown)
                     node_shape = np.asarray(edge.getToNode().getShape(), np.float64)
                     depth = _junction_depth(end, fwd, node_shape)
                     if depth > 3.0:
                         far = end + fwd * (depth + 2.0) + right * side
                         heads.append((far[0], far[1], heading + math.pi))
+                        head_links.append(shown)
                 elif stop:
                     stop_posts.append((near[0], near[1], heading + math.pi))
 
@@ -444,7 +465,7 @@ def build_static_scene(net_path: Path | str, network_sha256: str = "") -> Static
     classes = (
         [1] * sum(c == 1 for c, _ in bev) + [0] * len(cutouts) + [2] * sum(c == 2 for c, _ in bev)
     )
-    return assemble_static_scene(b, rings, classes, heads, sha)
+    return assemble_static_scene(b, rings, classes, heads, sha, head_links=head_links)
 
 
 def assemble_static_scene(
@@ -454,10 +475,12 @@ def assemble_static_scene(
     heads: Sequence[tuple[float, float, float]] = (),
     network_sha256: str = "",
     terrain: bool = True,
+    head_links: Sequence[tuple[str, Sequence[int]]] = (),
 ) -> StaticScene:
     """Finish a static scene from accumulated triangles: grass terrain under everything (one
     quad per tile, TERRAIN_MARGIN_M beyond), tiles, normals and the BEV polygons (painted in
-    the given order). Also how tests build small hand-made scenes."""
+    the given order). `head_links`: per head, its traffic light's id and the link indices it
+    shows (default: none). Also how tests build small hand-made scenes."""
     tris = np.concatenate(b.tris)
     lo = tris[..., :2].reshape(-1, 2).min(0) - TERRAIN_MARGIN_M
     hi = tris[..., :2].reshape(-1, 2).max(0) + TERRAIN_MARGIN_M
@@ -504,6 +527,9 @@ def assemble_static_scene(
     np.maximum.at(reach, tid, reach_tri.astype(np.float32))
 
     head_arr = np.array(heads, np.float64).reshape(-1, 3)
+    links = list(head_links) or [("", ())] * len(head_arr)
+    link_start = np.concatenate([[0], np.cumsum([len(i) for _, i in links])]).astype(np.int64)
+    link_index = np.array([i for _, idx in links for i in idx], np.int32)
     return StaticScene(
         triangles_m=tris.astype(np.float32),
         normals=triangle_normals(tris),
@@ -516,6 +542,9 @@ def assemble_static_scene(
         tile_reach_m=reach,
         head_xy_m=head_arr[:, :2].astype(np.float32),
         head_yaw_rad=head_arr[:, 2].astype(np.float32),
+        head_tls=np.array([t for t, _ in links], dtype=str).reshape(-1),
+        head_link_start=link_start,
+        head_link_index=link_index,
         label_map=LabelMap.from_rings(bev_rings, bev_classes),
         network_sha256=network_sha256,
     )

@@ -28,9 +28,9 @@ EPISODES = (
     ("grid3-3-0", 3, "sunny", "normal", 5),
     ("grid3-8-1", 8, "rainy", "aggressive", 3),
 )
-EXPECTED_SHA256 = {  # data v3, schema 1.1
-    "grid3-3-0": "cea9640901e7a2b883959f64d74c6c50958ac528132bebc45a24f06cb4f9a782",
-    "grid3-8-1": "7c66b7a6f8d819777074373421fbe70593ae3b8b6219f852b6203866aa6bd0b4",
+EXPECTED_SHA256 = {  # scene v2, data v4, schema 1.1
+    "grid3-3-0": "6fb23743a3c39c524477572362e79e1a5fa531c4dfd389d5f665e8d0669909ca",
+    "grid3-8-1": "2c80553d67ff627b1a8de4009e6ca1549b9a1d8a6da6c4a3ae35df5c59684363",
 }
 
 
