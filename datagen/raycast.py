@@ -99,23 +99,23 @@ class FrameScene:
     def surface(self, prim: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Attributes of primitives `prim` ((n,) int, all >= 0): normals (n, 3) float32, colour
         (n, 3) uint8, material (n,) uint8, lamp tag (n,) int32 (-1 for actors)."""
-        static = (self.static_normals, self.static_colour_rgb, self.static_material)
         dyn = np.flatnonzero(prim >= self.n_static)
-        if not len(dyn):  # np.take on rows: ~4x faster than fancy indexing
-            out = [np.take(a, prim, axis=0) for a in static]
-            return out[0], out[1], out[2], np.take(self.static_tag, prim)
-        st = np.flatnonzero(prim < self.n_static)
-        ps, pd = prim[st], prim[dyn] - self.n_static
-        am = self.actors
-        out = []
-        for a_static, a_dyn in zip(static, (am.normals, am.colour_rgb, am.material)):
-            o = np.empty((len(prim), *a_static.shape[1:]), a_static.dtype)
-            o[st] = np.take(a_static, ps, axis=0)
-            o[dyn] = np.take(a_dyn, pd, axis=0)
-            out.append(o)
-        tag = np.full(len(prim), -1, np.int32)
-        tag[st] = np.take(self.static_tag, ps)
-        return out[0], out[1], out[2], tag
+        if len(dyn):  # read every row from the static arrays, then overwrite the actors' rows
+            pd = prim[dyn] - self.n_static
+            prim = prim.copy()
+            prim[dyn] = 0
+        # np.take on rows: ~4x faster than fancy indexing
+        normals = np.take(self.static_normals, prim, axis=0)
+        colour = np.take(self.static_colour_rgb, prim, axis=0)
+        material = np.take(self.static_material, prim)
+        tag = np.take(self.static_tag, prim)
+        if len(dyn):
+            am = self.actors
+            normals[dyn] = np.take(am.normals, pd, axis=0)
+            colour[dyn] = np.take(am.colour_rgb, pd, axis=0)
+            material[dyn] = np.take(am.material, pd)
+            tag[dyn] = -1
+        return normals, colour, material, tag
 
     def actor_of(self, prim: np.ndarray) -> np.ndarray:
         """(n,) int32 index into `agents` of each primitive's agent; -1 static or no hit."""
