@@ -7,8 +7,9 @@ and vertical field of view is 2 * atan(128 / f) = 74.6 degrees with f = 200 / ta
 
 Shading (per pixel, numpy): base colour of the triangle hit x (ambient + sun * max(0, n.s) *
 shadow), with shadow rays towards the sun in sunny weather; building walls get a procedural
-window grid; traffic-light lamps glow in the colour of the signal that governs the ego (the
-heads facing it ahead, see `lit_slots`); rays that hit nothing within `range_m` see the sky.
+window grid; every traffic-light head glows with the real state of its own light's links,
+whether or not that light governs the ego (`lit_slots`); rays that hit nothing within
+`range_m` see the sky.
 Then the weather (CAMERA_WEATHER):
 
 - sunny: blue sky, strong sun with shadows, faint haze far away;
@@ -26,7 +27,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from datagen.scene import FrameScene, Material, StaticScene, world_rays
+from datagen.mesh import Material
+from datagen.raycast import FrameScene, world_rays
+from datagen.scene import StaticScene
 from datagen.state import FrameState, Pose
 from schemas import IMAGE_FOV_DEG, IMAGE_FULL_H_PX, IMAGE_FULL_W_PX, IMAGE_SIZE_PX
 
@@ -132,7 +135,6 @@ CAMERA_WEATHER = {
 
 DEFAULT_SUN = np.array([0.5, 0.3, 0.81])  # towards the sun, world frame (~54 deg up)
 LAMP_RGB = np.array([(255, 45, 30), (255, 190, 20), (40, 255, 110)], np.float32) / 255
-_LIGHT_SLOT = {"red": 0, "yellow": 1, "green": 2}
 GLASS_RGB = np.array([0.17, 0.21, 0.26], np.float32)
 WINDOW_FLOOR_M, WINDOW_BAY_M = 3.2, 3.6  # window grid: one per floor and bay
 
@@ -158,23 +160,33 @@ def sun_direction(rng: np.random.Generator) -> np.ndarray:
     return np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
 
 
-def lit_slots(static: StaticScene, frame: FrameState) -> np.ndarray:
+# SUMO signal characters (getRedYellowGreenState) -> lamp slot: r red, s stop (right on red),
+# u red-yellow, y/Y yellow, g/G green (minor/major); o/O (off) leave the head dark.
+SUMO_LAMP_SLOT = {"r": 0, "R": 0, "s": 0, "u": 0, "y": 1, "Y": 1, "g": 2, "G": 2}
+
+
+def lit_slots(static: StaticScene, frame: FrameState, range_m: float = 160.0) -> np.ndarray:
     """(H,) int8 lamp lit per signal head: 0 red, 1 yellow, 2 green, -1 dark.
 
-    FrameState carries only the signal governing the ego, so the heads that show it are those
-    facing the ego (within ~35 degrees) ahead of it up to its stop line + 25 m and within 15 m
-    to the side; every other head is drawn dark."""
+    Every head within `range_m` of the ego shows the real state of its own traffic light's
+    links (FrameState.signals; StaticScene.head_link_*), whether or not that light governs the
+    ego and at any distance the camera sees: a head lights green if any movement of its
+    approach may go, else yellow if one shows yellow, else red. So the image shows what a
+    driver would see, and the `traffic_light` label alone says which light governs the ego.
+    Heads whose light is unknown (no FrameState.signals, hand-made scenes) stay dark."""
     n = len(static.head_xy_m)
     out = np.full(n, -1, np.int8)
-    slot = _LIGHT_SLOT.get(frame.traffic_light)
-    if slot is None or not n:
+    states = dict(frame.signals)
+    if not n or not states:
         return out
-    pose = frame.ego.pose
-    ego = pose.ego_from_world(static.head_xy_m)
-    facing = np.cos(static.head_yaw_rad - pose.yaw_rad) < -0.82
-    reach = (frame.light_distance_m or 0.0) + 25.0
-    near = (ego[:, 0] > 0) & (ego[:, 0] < reach) & (np.abs(ego[:, 1]) < 15.0)
-    out[facing & near] = slot
+    d = static.head_xy_m - np.array([frame.ego.pose.x_m, frame.ego.pose.y_m], np.float32)
+    start, index = static.head_link_start, static.head_link_index
+    for k in np.flatnonzero(np.hypot(d[:, 0], d[:, 1]) <= range_m):
+        state = states.get(str(static.head_tls[k]))
+        if state is None:
+            continue
+        slots = [SUMO_LAMP_SLOT.get(state[i], -1) for i in index[start[k] : start[k + 1]]]
+        out[k] = max(slots, default=-1)
     return out
 
 
@@ -260,11 +272,10 @@ class Camera:
         p = prim[hi]
         d = np.take(dirs, hi, axis=0)  # np.take: ~4x faster than fancy indexing for rows
         t = dist[hi]
-        n = np.take(scene.normals, p, axis=0)
+        n, albedo, mat, tags = scene.surface(p)
         facing = n[:, 0] * d[:, 0] + n[:, 1] * d[:, 1] + n[:, 2] * d[:, 2]
         n *= np.where(facing > 0, np.float32(-1), np.float32(1))[:, None]  # towards the camera
-        albedo = np.take(scene.colour_rgb, p, axis=0).astype(np.float32)  # 0..255
-        mat = scene.material[p]
+        albedo = albedo.astype(np.float32)  # 0..255
         pts = origins[0] + d * t[:, None]
 
         # Procedural windows on building walls.
@@ -302,7 +313,7 @@ class Camera:
         # Lamps glow (unshaded) in their signal's colour.
         lamp = np.flatnonzero(mat == Material.LAMP)
         if len(lamp):
-            tag = scene.tag[p[lamp]]
+            tag = tags[lamp]
             head, slot = tag // 3, tag % 3
             on = np.zeros(len(lamp), bool) if lamps is None else lamps[head] == slot
             colour[lamp] = LAMP_RGB[slot] * np.where(on, 1.0, 0.18)[:, None].astype(np.float32)

@@ -29,7 +29,8 @@ import pyarrow as pa
 
 import schemas
 from datagen import camera, labels, lidar
-from datagen.scene import SCENE_VERSION, SceneBuilder, StaticScene, load_static_scene
+from datagen.raycast import SceneBuilder
+from datagen.scene import SCENE_VERSION, StaticScene, load_static_scene
 from datagen.state import FrameState
 from schemas import codecs
 
@@ -37,16 +38,23 @@ HISTORY = 2  # past sweeps in the LiDAR BEV (t-1, t-2)
 FUTURE = labels.FUTURE_FRAMES  # 4 future states for +2.0 s waypoints
 STAGES = ("sim", "scene", "lidar", "camera", "labels", "encode")
 
+DATA_VERSION = 4
+"""What the generator writes, beyond the scene (bump it with every change of shard bytes for the
+same seed; tests/test_identical.py pins them; data/_README.md lists the changes):
+1 the first release; 2 PNG columns encoded with no/UP row filter + RLE (same decoded arrays);
+3 the `lidar_ground_t` column (schema 1.1); 4 every signal head lit with its own light's real
+state at any distance (was: only the heads showing the ego's governing light within 30 m)."""
+
 
 def generator_version() -> str:
-    """What made the data: the package version and the static scene's version."""
+    """What made the data: the package version, the static scene's and the data's version."""
     try:
         from importlib.metadata import version
 
         v = version("iidsu")
     except Exception:  # noqa: BLE001  (a source checkout without installed metadata)
         v = "0+unknown"
-    return f"iidsu {v}, scene v{SCENE_VERSION}"
+    return f"iidsu {v}, scene v{SCENE_VERSION}, data v{DATA_VERSION}"
 
 
 @dataclass(frozen=True)
@@ -143,8 +151,9 @@ class Sensors:
     def sweep(self, scene, frame: FrameState) -> lidar.Sweep:
         return self.lidar.sweep(scene, frame.ego.pose, self.lidar_weather, self.lidar_rng)
 
-    def lidar_bev(self, sweeps: list[lidar.Sweep]) -> np.ndarray:
-        return lidar.bev_histogram(
+    def lidar_counts(self, sweeps: list[lidar.Sweep]) -> np.ndarray:
+        """(5, 256, 256) BEV hit counts of the sweeps at t, t-1, t-2 (lidar.bev_counts)."""
+        return lidar.bev_counts(
             sweeps,
             self.config.lidar.ground_threshold_m,
             self.pose_rng,
@@ -153,7 +162,7 @@ class Sensors:
         )
 
     def image(self, scene, frame: FrameState) -> np.ndarray:
-        lamps = camera.lit_slots(self.static, frame)
+        lamps = camera.lit_slots(self.static, frame, self.config.camera.range_m + 10.0)
         return self.camera.render(
             scene, frame.ego.pose, self.camera_weather, self.camera_rng, self.sun, lamps
         )
@@ -248,13 +257,14 @@ def _process(
     if k < HISTORY:
         timer.lap("lidar")
         return None
-    bev = sense.lidar_bev([sweeps[k - j] for j in range(HISTORY + 1)])
+    counts = sense.lidar_counts([sweeps[k - j] for j in range(HISTORY + 1)])
+    bev, ground_t = lidar.lidar_bev_channels(counts), lidar.ground_channel(counts)
     timer.lap("lidar")
     image = sense.image(scene, frame)
     timer.lap("camera")
     future = states[k + 1 : k + 1 + FUTURE]
     row = labels.frame_labels(frame, future, sweeps[k].actor_hits)
-    semantic = labels.bev_semantic(sense.static, frame.ego.pose)
+    semantic = labels.bev_semantic(sense.static.label_map, frame.ego.pose)
     timer.lap("labels")
     row.update(
         episode_id=spec.episode_id,
@@ -263,6 +273,7 @@ def _process(
         behaviour=spec.behaviour,
         image=codecs.encode_image(image, sense.config.jpeg_quality),
         lidar_bev=codecs.encode_lidar_bev(bev),
+        lidar_ground_t=codecs.encode_lidar_ground(ground_t),
         bev_semantic=codecs.encode_bev_semantic(semantic),
     )
     timer.lap("encode")

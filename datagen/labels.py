@@ -1,11 +1,11 @@
 """The labels of one recorded frame (paper Sec. III-A), from the simulator's ground truth.
 
-Pure functions of `FrameState`s (the frame at t and its recorded future at 2 Hz) and the static
-scene; every position is in the ego frame at t (x forward, y left, m; yaw counter-clockwise).
+Pure functions of `FrameState`s (the frame at t and its recorded future at 2 Hz) and the town's
+label map (datagen/labelmap.py); every position is in the ego frame at t (x forward, y left, m; yaw counter-clockwise).
 
 - `bev_semantic`: the network's drivable area, cut by sidewalks, with lane markings on top,
   rasterised on the BEV grid with OpenCV `fillPoly` (1/8-pixel vertex precision). Polygons are
-  culled by their bounding boxes and painted one call each in StaticScene.bev_class order: one
+  culled by their bounding boxes and painted one call each in LabelMap.class_id order: one
   call for all of them would use the even-odd rule and punch holes where lanes overlap.
 - `boxes`: agents inside the BEV area at t, t+0.5 s and t+1.0 s, each in the ego frame at t,
   with their LiDAR returns at t.
@@ -21,7 +21,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from datagen.scene import StaticScene
+from datagen.labelmap import LabelMap
 from datagen.state import FrameState, Pose
 from schemas import (
     BEV_AHEAD_M,
@@ -50,24 +50,24 @@ def bev_area_corners(pose: Pose) -> np.ndarray:
     return pose.world_from_ego(ego)
 
 
-def bev_semantic(static: StaticScene, pose: Pose) -> np.ndarray:
+def bev_semantic(label_map: LabelMap, pose: Pose) -> np.ndarray:
     """(256, 256) uint8 class ids on the BEV grid of the ego at `pose`: 0 other, 1 drivable,
-    2 lane marking."""
+    2 lane marking (the town's `label_map`, e.g. StaticScene.label_map)."""
     img = np.zeros((BEV_SIZE_PX, BEV_SIZE_PX), np.uint8)
     corners = bev_area_corners(pose)
     lo, hi = corners.min(0), corners.max(0)
-    bb = static.bev_bbox_m
+    bb = label_map.bbox_m
     sel = np.flatnonzero(
         (bb[:, 0] <= hi[0]) & (bb[:, 2] >= lo[0]) & (bb[:, 1] <= hi[1]) & (bb[:, 3] >= lo[1])
     )
     if not len(sel):
         return img
-    starts, ends = static.bev_start[sel], static.bev_start[sel + 1]
+    starts, ends = label_map.start[sel], label_map.start[sel + 1]
     lens = ends - starts
     idx = np.repeat(starts - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens) + np.arange(
         lens.sum()
     )
-    ego = pose.ego_from_world(static.bev_xy_m[idx])
+    ego = pose.ego_from_world(label_map.xy_m[idx])
     row, col = ego_to_bev_px(ego[:, 0], ego[:, 1])
     # OpenCV puts pixel i's centre at i; ours (schemas.bev) at i + 0.5.
     scale = 1 << _SUBPIXEL_BITS
@@ -75,7 +75,11 @@ def bev_semantic(static: StaticScene, pose: Pose) -> np.ndarray:
     offs = np.concatenate([[0], np.cumsum(lens)])
     for k, p in enumerate(sel):
         cv2.fillPoly(
-            img, [pts[offs[k] : offs[k + 1]]], int(static.bev_class[p]), cv2.LINE_8, _SUBPIXEL_BITS
+            img,
+            [pts[offs[k] : offs[k + 1]]],
+            int(label_map.class_id[p]),
+            cv2.LINE_8,
+            _SUBPIXEL_BITS,
         )
     return img
 

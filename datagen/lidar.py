@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from datagen.scene import FrameScene, world_rays
+from datagen.raycast import FrameScene, world_rays
 from datagen.state import Pose
 from schemas import (
     BEV_AHEAD_M,
@@ -237,22 +237,24 @@ def histogram(points_ego: np.ndarray, above: np.ndarray) -> tuple[np.ndarray, np
     return ground, up
 
 
-def bev_histogram(
+def bev_counts(
     sweeps: Sequence[Sweep],
     ground_threshold_m: float = LidarConfig.ground_threshold_m,
     rng: np.random.Generator | None = None,
     pose_noise_m: float = 0.0,
     pose_noise_rad: float = 0.0,
 ) -> np.ndarray:
-    """The paper's LiDAR input: sweeps at t, t-1, t-2 (newest first) -> (256, 256, 4) uint8.
+    """Sweeps at t, t-1, t-2 (newest first) -> (5, 256, 256) int64 hit counts on the BEV grid of
+    the ego at t: 0 at-ground hits of t-1 and t-2, 1..3 above-ground hits at t, t-1, t-2,
+    4 at-ground hits at t (what `lidar_bev_channels` and `ground_channel` clip and sum).
 
     Every sweep is moved into the ego frame of the first using the recorded poses. With
     pose noise (GPS/IMU error, standard deviations in m and rad) each past pose is perturbed
     before the alignment, as a real vehicle's odometry would be; it needs `rng`.
-    Channel 0: at-ground counts summed over the sweeps; channels 1..: above-ground counts of
-    each sweep (zeros for a missing one). Clipped at 255.
+    One bincount over channel * 65536 + pixel.
     """
     ref = sweeps[0].pose
+    nch = LIDAR_BEV_CHANNELS + 1
     size = BEV_SIZE_PX * BEV_SIZE_PX
     flat = []
     for k, sweep in enumerate(sweeps[: LIDAR_BEV_CHANNELS - 1]):
@@ -269,8 +271,36 @@ def bev_histogram(
             pts = np.concatenate([xy, pts[:, 2:]], 1).astype(np.float32)
         idx, ok = _bev_index(pts, ref)
         above = pts[ok, 2] >= ground_threshold_m
-        # channel 0 for at-ground returns, 1 + k for above-ground ones
-        flat.append(idx + np.where(above, (1 + k) * size, 0).astype(np.int32))
-    counts = np.bincount(np.concatenate(flat), minlength=LIDAR_BEV_CHANNELS * size)
-    out = counts.reshape(LIDAR_BEV_CHANNELS, BEV_SIZE_PX, BEV_SIZE_PX).transpose(1, 2, 0)
-    return np.minimum(out, 255).astype(np.uint8)
+        ground = LIDAR_BEV_CHANNELS if k == 0 else 0
+        flat.append(idx + np.where(above, (1 + k) * size, ground * size).astype(np.int32))
+    counts = np.bincount(np.concatenate(flat), minlength=nch * size)
+    return counts.reshape(nch, BEV_SIZE_PX, BEV_SIZE_PX)
+
+
+def bev_histogram(
+    sweeps: Sequence[Sweep],
+    ground_threshold_m: float = LidarConfig.ground_threshold_m,
+    rng: np.random.Generator | None = None,
+    pose_noise_m: float = 0.0,
+    pose_noise_rad: float = 0.0,
+) -> np.ndarray:
+    """The paper's LiDAR input: sweeps at t, t-1, t-2 (newest first) -> (256, 256, 4) uint8.
+
+    Channel 0: at-ground counts summed over the sweeps; channels 1..: above-ground counts of
+    each sweep (zeros for a missing one). Clipped at 255. Alignment and pose noise: `bev_counts`.
+    """
+    counts = bev_counts(sweeps, ground_threshold_m, rng, pose_noise_m, pose_noise_rad)
+    return lidar_bev_channels(counts)
+
+
+def ground_channel(counts: np.ndarray) -> np.ndarray:
+    """`bev_counts` -> (256, 256) uint8 at-ground hits of the sweep at t alone, clipped at 255
+    (the `lidar_ground_t` column: channel 0 of `lidar_bev` without the past sweeps)."""
+    return np.minimum(counts[LIDAR_BEV_CHANNELS], 255).astype(np.uint8)
+
+
+def lidar_bev_channels(counts: np.ndarray) -> np.ndarray:
+    """`bev_counts` -> the (256, 256, 4) uint8 `lidar_bev` channels (see `bev_histogram`)."""
+    out = counts[:LIDAR_BEV_CHANNELS].copy()
+    out[0] += counts[LIDAR_BEV_CHANNELS]
+    return np.minimum(out.transpose(1, 2, 0), 255).astype(np.uint8)

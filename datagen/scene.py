@@ -19,32 +19,17 @@ Static mesh (built once per network from sumolib, cached on disk under
 - a traffic-light pole with a signal head (three lamps facing the approach) at the near and far
   right corner of every signalised entry, a stop-sign post at every stop-controlled entry.
 
-Culling. Triangles are sorted into square tiles (TILE_M) by centroid; each tile knows how far its
-triangles reach from its centre. A frame's static Embree scene holds only the tiles within the
-sensors' reach (the camera's 150 m plus its mount) plus SceneBuilder.REBUILD_M, so the cost per
-frame does not grow with the town.
-
-Two Embree scenes per frame, not one. One scene per frame (culled static + actor boxes) was the
-first design, but embreex's `TriangleMesh` copies vertices into Embree one coordinate at a time through
-Python-level indexing: ~1.1 us per triangle (6.4k triangles: 6.5 ms; the 13-22k static triangles
-within reach: 15-20 ms CPU per commit, measured on this 2-core box), which alone would eat a
-third of the 50 ms frame budget. So the static scene is committed once and kept until the ego
-has moved REBUILD_M (60 m: 15-20 ms per rebuild, ~1.4 ms per frame at 10 m/s; 40 m costs 0.38
-ms per metre driven, 60 m 0.27, 80 m 0.23 with a bigger scene to traverse), and the agents get
-their own small scene each frame (~1k triangles, <1 ms). Every sensor ray is cast into the static
-scene; only the rays that can hit an agent (LiDAR: its box's elevation x azimuth window, ~3k of
-64k rays; camera: its bounding sphere's projected rectangle) are cast again into the actor scene,
-bounded by their static hit (`dists=`), which costs ~0.5 ms a frame. bench/frame.py measures the
-result against bare Embree calls for the same rays.
+Triangles are sorted into square tiles (TILE_M) by centroid; each tile knows how far its
+triangles reach from its centre (what datagen/raycast.py culls by). The BEV polygons the
+labels are painted from are kept beside the mesh as a `LabelMap` (datagen/labelmap.py).
 """
 
 from __future__ import annotations
 
-import enum
 import hashlib
 import math
 import os
-import zlib
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -52,9 +37,11 @@ from pathlib import Path
 import mapbox_earcut
 import numpy as np
 
-from datagen.state import AgentState, FrameState, Pose
+from datagen.labelmap import LabelMap
+from datagen.mesh import Material, boxes_triangles, triangle_normals
 
-SCENE_VERSION = 1  # bump to invalidate every cached static scene after a change here
+SCENE_VERSION = 2  # bump to invalidate every cached static scene after a change here
+# 2: each signal head knows its traffic light and the links it shows (head_tls, head_link_*)
 TILE_M = 32.0  # culling tile size
 
 SIDEWALK_HEIGHT_M = 0.12
@@ -87,22 +74,6 @@ SIGN_SIZE_M = 0.75
 FURNITURE_SIDE_OFFSET_M = 1.0  # from the rightmost lane's outer edge
 
 
-class Material(enum.IntEnum):
-    """Surface class of a triangle (what the camera colours and shades it as)."""
-
-    ROAD = 0
-    MARKING = 1
-    SIDEWALK = 2
-    TERRAIN = 3
-    BUILDING = 4
-    POLE = 5
-    SIGN = 6
-    VEHICLE = 7
-    PEDESTRIAN = 8
-    LAMP = 9  # a traffic-light lamp: lit per frame by the camera (see camera.lit_slots)
-    VEGETATION = 10
-
-
 # Base colours (RGB albedo as 0..255) of the static materials.
 COLOURS = {
     Material.ROAD: (78, 78, 82),
@@ -128,29 +99,6 @@ FACADES = np.array(
     ],
     np.uint8,
 )
-CAR_PAINTS = np.array(
-    [
-        (200, 200, 200),
-        (30, 30, 34),
-        (150, 20, 20),
-        (20, 50, 140),
-        (230, 230, 225),
-        (110, 110, 115),
-        (40, 90, 50),
-        (200, 160, 30),
-        (90, 40, 100),
-        (60, 120, 170),
-    ],
-    np.uint8,
-)
-CLOTHES = np.array(
-    [(180, 40, 40), (40, 70, 160), (220, 200, 60), (40, 140, 80), (230, 230, 230), (200, 100, 30)],
-    np.uint8,
-)
-GLASS_RGB = (38, 48, 60)
-TYRE_RGB = (22, 22, 22)
-SKIN_RGB = (200, 160, 130)
-TROUSERS_RGB = (45, 45, 60)
 ROOF_RGB = (95, 92, 90)
 TRUNK_RGB = (90, 65, 45)
 CANOPY_RGB = (55, 105, 45)
@@ -255,64 +203,6 @@ def _polygon_triangles(ring: np.ndarray, z_m: float) -> np.ndarray:
     return v[np.asarray(idx, np.int64).reshape(-1, 3)]
 
 
-# Unit box: 12 triangles, faces +x, -x, +y, -y, +z, -z (two triangles each), corners at +-0.5.
-_BOX_QUADS = (
-    np.array(
-        [
-            [[1, -1, -1], [1, 1, -1], [1, 1, 1], [1, -1, 1]],
-            [[-1, 1, -1], [-1, -1, -1], [-1, -1, 1], [-1, 1, 1]],
-            [[1, 1, -1], [-1, 1, -1], [-1, 1, 1], [1, 1, 1]],
-            [[-1, -1, -1], [1, -1, -1], [1, -1, 1], [-1, -1, 1]],
-            [[-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]],
-            [[-1, 1, -1], [1, 1, -1], [1, -1, -1], [-1, -1, -1]],
-        ],
-        np.float64,
-    )
-    * 0.5
-)
-UNIT_BOX = np.concatenate([_BOX_QUADS[:, [0, 1, 2]], _BOX_QUADS[:, [0, 2, 3]]], axis=0)[
-    np.array([0, 6, 1, 7, 2, 8, 3, 9, 4, 10, 5, 11])
-]  # (12, 3, 3), face f is triangles 2f, 2f+1
-BOX_FACE_TOP = np.repeat(  # per UNIT_BOX triangle: on the +z face
-    np.array([0, 0, 0, 0, 1, 0]), 2
-).astype(bool)
-
-
-def boxes_triangles(
-    centre_xyz: np.ndarray,
-    size_xyz: np.ndarray,
-    yaw_rad: np.ndarray,
-    faces: np.ndarray | None = None,
-) -> np.ndarray:
-    """Oriented boxes -> (B, F, 3, 3) triangles.
-
-    Args:
-        centre_xyz: (B, 3) box centres (not the ground point), m, world frame.
-        size_xyz: (B, 3) extents along the box's own x (heading), y, z, m.
-        yaw_rad: (B,) heading, counter-clockwise from world +x.
-        faces: triangle indices of UNIT_BOX to keep (default all 12; F = len(faces)).
-    """
-    unit = UNIT_BOX if faces is None else UNIT_BOX[faces]
-    local = unit[None] * np.asarray(size_xyz, np.float64)[:, None, None, :]  # (B, F, 3, 3)
-    c, s = np.cos(yaw_rad)[:, None, None], np.sin(yaw_rad)[:, None, None]
-    x = c * local[..., 0] - s * local[..., 1]
-    y = s * local[..., 0] + c * local[..., 1]
-    out = np.stack([x, y, local[..., 2]], axis=-1)
-    return out + np.asarray(centre_xyz, np.float64)[:, None, None, :]
-
-
-def triangle_normals(tris: np.ndarray) -> np.ndarray:
-    """(T, 3, 3) -> (T, 3) float32 unit normals (orientation arbitrary; the camera flips them to
-    face the ray)."""
-    n = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
-    return (n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)).astype(np.float32)
-
-
-def _stable_index(key: str, n: int) -> int:
-    """A deterministic index in [0, n) from a string (Python's hash() is salted per process)."""
-    return zlib.crc32(key.encode()) % n
-
-
 # ------------------------------------------------------------------------------------------
 # The static scene
 
@@ -336,12 +226,13 @@ class StaticScene:
             centre in the plane, m.
         head_xy_m: (H, 2) float32 signal-head positions, world frame.
         head_yaw_rad: (H,) float32 the direction each head faces (towards its approach).
-        bev_xy_m: (V, 2) float32 vertices of the BEV polygons, world frame, concatenated.
-        bev_start: (P + 1,) int64, polygon p is bev_xy_m[bev_start[p]:bev_start[p+1]].
-        bev_class: (P,) uint8 class each polygon paints, in painting order: 1 drivable (lanes
-            open to cars, junctions), then 0 (sidewalks and walking areas cut out of it), then
-            2 lane markings (lines and stop lines).
-        bev_bbox_m: (P, 4) float32 (xmin, ymin, xmax, ymax) of each polygon.
+        head_tls: (H,) str, the SUMO traffic light each head belongs to ("" if unknown).
+        head_link_start: (H + 1,) int64, head h shows the links
+            head_link_index[head_link_start[h]:head_link_start[h+1]] of its traffic light:
+            every link leaving its approach edge's car lanes (indices into the light's state
+            string, libsumo trafficlight.getRedYellowGreenState).
+        head_link_index: (L,) int32.
+        label_map: the BEV polygons the semantic labels are painted from.
         network_sha256: the network this scene was built from.
     """
 
@@ -356,10 +247,10 @@ class StaticScene:
     tile_reach_m: np.ndarray
     head_xy_m: np.ndarray
     head_yaw_rad: np.ndarray
-    bev_xy_m: np.ndarray
-    bev_start: np.ndarray
-    bev_class: np.ndarray
-    bev_bbox_m: np.ndarray
+    head_tls: np.ndarray
+    head_link_start: np.ndarray
+    head_link_index: np.ndarray
+    label_map: LabelMap
     network_sha256: str
 
     @property
@@ -417,6 +308,7 @@ def build_static_scene(net_path: Path | str, network_sha256: str = "") -> Static
     cutouts: list[np.ndarray] = []
     occupied: list[np.ndarray] = []  # rings nothing may be built on
     heads: list[tuple[float, float, float]] = []  # x, y, facing yaw
+    head_links: list[tuple[str, tuple[int, ...]]] = []  # per head: light id, link indices
     stop_posts: list[tuple[float, float, float]] = []
 
     edges = net.getEdges(withInternal=True)
@@ -527,12 +419,22 @@ def build_static_scene(net_path: Path | str, network_sha256: str = "") -> Static
                     side = outer + FURNITURE_SIDE_OFFSET_M
                 near = end + right * side - fwd * 0.5
                 if tls:
+                    links = [
+                        (c.getTLSID(), c.getTLLinkIndex())
+                        for ln in car_lanes
+                        for c in ln.getOutgoing()
+                        if c.getTLSID()
+                    ]
+                    tls_id = links[0][0] if links else ""
+                    shown = (tls_id, tuple(sorted({i for t, i in links if t == tls_id})))
                     heads.append((near[0], near[1], heading + math.pi))
+                    head_links.append(shown)
                     node_shape = np.asarray(edge.getToNode().getShape(), np.float64)
                     depth = _junction_depth(end, fwd, node_shape)
                     if depth > 3.0:
                         far = end + fwd * (depth + 2.0) + right * side
                         heads.append((far[0], far[1], heading + math.pi))
+                        head_links.append(shown)
                 elif stop:
                     stop_posts.append((near[0], near[1], heading + math.pi))
 
@@ -563,7 +465,7 @@ def build_static_scene(net_path: Path | str, network_sha256: str = "") -> Static
     classes = (
         [1] * sum(c == 1 for c, _ in bev) + [0] * len(cutouts) + [2] * sum(c == 2 for c, _ in bev)
     )
-    return assemble_static_scene(b, rings, classes, heads, sha)
+    return assemble_static_scene(b, rings, classes, heads, sha, head_links=head_links)
 
 
 def assemble_static_scene(
@@ -573,10 +475,12 @@ def assemble_static_scene(
     heads: Sequence[tuple[float, float, float]] = (),
     network_sha256: str = "",
     terrain: bool = True,
+    head_links: Sequence[tuple[str, Sequence[int]]] = (),
 ) -> StaticScene:
     """Finish a static scene from accumulated triangles: grass terrain under everything (one
     quad per tile, TERRAIN_MARGIN_M beyond), tiles, normals and the BEV polygons (painted in
-    the given order). Also how tests build small hand-made scenes."""
+    the given order). `head_links`: per head, its traffic light's id and the link indices it
+    shows (default: none). Also how tests build small hand-made scenes."""
     tris = np.concatenate(b.tris)
     lo = tris[..., :2].reshape(-1, 2).min(0) - TERRAIN_MARGIN_M
     hi = tris[..., :2].reshape(-1, 2).max(0) + TERRAIN_MARGIN_M
@@ -622,12 +526,10 @@ def assemble_static_scene(
     reach = np.zeros(n_tiles, np.float32)
     np.maximum.at(reach, tid, reach_tri.astype(np.float32))
 
-    rings = [np.asarray(r, np.float64).reshape(-1, 2) for r in bev_rings]
-    starts = np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
-    xy = np.concatenate(rings).astype(np.float32) if rings else np.zeros((0, 2), np.float32)
-    bbox = np.array([[*r.min(0), *r.max(0)] for r in rings], np.float32).reshape(-1, 4)
-
     head_arr = np.array(heads, np.float64).reshape(-1, 3)
+    links = list(head_links) or [("", ())] * len(head_arr)
+    link_start = np.concatenate([[0], np.cumsum([len(i) for _, i in links])]).astype(np.int64)
+    link_index = np.array([i for _, idx in links for i in idx], np.int32)
     return StaticScene(
         triangles_m=tris.astype(np.float32),
         normals=triangle_normals(tris),
@@ -640,10 +542,10 @@ def assemble_static_scene(
         tile_reach_m=reach,
         head_xy_m=head_arr[:, :2].astype(np.float32),
         head_yaw_rad=head_arr[:, 2].astype(np.float32),
-        bev_xy_m=xy,
-        bev_start=starts,
-        bev_class=np.array(bev_classes, np.uint8),
-        bev_bbox_m=bbox,
+        head_tls=np.array([t for t, _ in links], dtype=str).reshape(-1),
+        head_link_start=link_start,
+        head_link_index=link_index,
+        label_map=LabelMap.from_rings(bev_rings, bev_classes),
         network_sha256=network_sha256,
     )
 
@@ -840,7 +742,33 @@ def scene_cache_dir() -> Path:
     return (Path(base) if base else Path.home() / ".cache" / "iidsu") / "scenes"
 
 
-_loaded: dict[str, StaticScene] = {}
+# The cache file's keys: the mesh fields by name, the label map's as before the split.
+_LABEL_MAP_KEYS = {
+    "xy_m": "bev_xy_m",
+    "start": "bev_start",
+    "class_id": "bev_class",
+    "bbox_m": "bev_bbox_m",
+}
+_MESH_FIELDS = tuple(
+    f.name for f in fields(StaticScene) if f.name not in ("label_map", "network_sha256")
+)
+
+
+def _to_arrays(scene: StaticScene) -> dict[str, np.ndarray]:
+    out = {name: getattr(scene, name) for name in _MESH_FIELDS}
+    out.update({k: getattr(scene.label_map, f) for f, k in _LABEL_MAP_KEYS.items()})
+    return out
+
+
+def _from_arrays(z, sha: str) -> StaticScene:
+    label_map = LabelMap(**{f: z[k] for f, k in _LABEL_MAP_KEYS.items()})
+    return StaticScene(
+        **{name: z[name] for name in _MESH_FIELDS}, label_map=label_map, network_sha256=sha
+    )
+
+
+_loaded: OrderedDict[str, StaticScene] = OrderedDict()
+LOADED_TOWNS = 8  # static scenes kept per process (LRU; all built-in towns: ~100 MB at most)
 
 
 def load_static_scene(net_path: Path | str, cache_dir: Path | None = None) -> StaticScene:
@@ -851,6 +779,7 @@ def load_static_scene(net_path: Path | str, cache_dir: Path | None = None) -> St
     sha = network_sha256(Path(net_path))
     key = f"{sha}-v{SCENE_VERSION}"
     if key in _loaded:
+        _loaded.move_to_end(key)
         return _loaded[key]
     cache = Path(cache_dir) if cache_dir is not None else scene_cache_dir()
     path = cache / f"{key}.npz"
@@ -858,381 +787,16 @@ def load_static_scene(net_path: Path | str, cache_dir: Path | None = None) -> St
     if path.exists():
         try:
             with np.load(path, allow_pickle=False) as z:
-                scene = StaticScene(
-                    **{
-                        f.name: z[f.name] for f in fields(StaticScene) if f.name != "network_sha256"
-                    },
-                    network_sha256=sha,
-                )
+                scene = _from_arrays(z, sha)
         except (OSError, ValueError, KeyError):
             scene = None  # a damaged cache entry is rebuilt
     if scene is None:
         scene = build_static_scene(net_path, sha)
         cache.mkdir(parents=True, exist_ok=True)
         part = path.with_name(f".{path.stem}.{os.getpid()}.part.npz")
-        np.savez(
-            part,
-            **{
-                f.name: getattr(scene, f.name)
-                for f in fields(StaticScene)
-                if f.name != "network_sha256"
-            },
-        )
+        np.savez(part, **_to_arrays(scene))
         os.replace(part, path)
-    _loaded.clear()  # one town per worker at a time keeps memory flat
-    _loaded[key] = scene
+    _loaded[key] = scene  # kept, so that raycast.town_embree reuses its Embree scene too
+    while len(_loaded) > LOADED_TOWNS:
+        _loaded.popitem(last=False)
     return scene
-
-
-# ------------------------------------------------------------------------------------------
-# Actors
-
-
-@dataclass(frozen=True)
-class ActorMesh:
-    """The dynamic triangles of one frame.
-
-    Attributes:
-        triangles_m: (D, 3, 3) float32, world frame.
-        normals: (D, 3) float32.
-        colour_rgb: (D, 3) uint8.
-        material: (D,) uint8 (VEHICLE or PEDESTRIAN).
-        actor: (D,) int32 index into the agents the mesh was built from.
-    """
-
-    triangles_m: np.ndarray
-    normals: np.ndarray
-    colour_rgb: np.ndarray
-    material: np.ndarray
-    actor: np.ndarray
-
-
-def _parts(agent: AgentState) -> list[tuple]:
-    """Boxes of one agent in its own frame (x forward, z up from the ground):
-    ((cx, cy, cz), (sx, sy, sz), side rgb, top rgb, material)."""
-    L, W, H = agent.length_m, agent.width_m, agent.height_m
-    if agent.cls == "pedestrian":
-        shirt = tuple(CLOTHES[_stable_index(agent.track_id, len(CLOTHES))])
-        m = Material.PEDESTRIAN
-        return [
-            ((0, 0, 0.24 * H), (0.7 * L, 0.8 * W, 0.48 * H), TROUSERS_RGB, TROUSERS_RGB, m),
-            ((0, 0, 0.665 * H), (L, W, 0.37 * H), shirt, shirt, m),
-            ((0, 0, 0.925 * H), (0.5 * W, 0.5 * W, 0.15 * H), SKIN_RGB, SKIN_RGB, m),
-        ]
-    paint = tuple(CAR_PAINTS[_stable_index(agent.track_id, len(CAR_PAINTS))])
-    m = Material.VEHICLE
-    if agent.cls == "bicycle":
-        shirt = tuple(CLOTHES[_stable_index(agent.track_id, len(CLOTHES))])
-        return [
-            ((0, 0, 0.45), (L, 0.12, 0.9), TYRE_RGB, paint, m),
-            ((-0.1 * L, 0, 0.55 * H + 0.05), (0.35, 0.45, 0.45 * H - 0.2), shirt, shirt, m),
-            ((-0.1 * L, 0, H - 0.12), (0.22, 0.22, 0.24), SKIN_RGB, SKIN_RGB, m),
-        ]
-    under = 0.3 if H < 2.2 else 0.45  # a dark band for the wheels and the underbody
-    parts = [((0, 0, under / 2), (0.8 * L, 0.94 * W, under), TYRE_RGB, TYRE_RGB, m)]
-    if H < 2.2:  # car: body, and a glass cabin with a painted roof
-        top = 0.58 * H
-        parts += [
-            ((0, 0, (under + top) / 2), (L, W, top - under), paint, paint, m),
-            ((-0.06 * L, 0, (top + H) / 2), (0.5 * L, 0.9 * W, H - top), GLASS_RGB, paint, m),
-        ]
-    else:  # van, truck, bus: one tall body with a windscreen
-        parts += [
-            # the body stops 4 cm short of the front so the windscreen's face is in front of it
-            ((-0.02, 0, (under + H) / 2), (L - 0.04, W, H - under), paint, paint, m),
-            ((0.5 * L - 0.03, 0, 0.72 * H), (0.06, 0.92 * W, 0.3 * H), GLASS_RGB, GLASS_RGB, m),
-        ]
-    return parts
-
-
-def actor_mesh(agents: Sequence[AgentState]) -> ActorMesh:
-    """Oriented boxes for every agent (vehicles: wheel band, body, glass cabin; people: legs,
-    torso, head), coloured per actor (a stable colour from its track id)."""
-    centres, sizes, yaws, side, top, mats, owner = [], [], [], [], [], [], []
-    for k, a in enumerate(agents):
-        c, s = math.cos(a.pose.yaw_rad), math.sin(a.pose.yaw_rad)
-        for (px, py, pz), size, rgb_side, rgb_top, mat in _parts(a):
-            centres.append((a.pose.x_m + c * px - s * py, a.pose.y_m + s * px + c * py, pz))
-            sizes.append(size)
-            yaws.append(a.pose.yaw_rad)
-            side.append(rgb_side)
-            top.append(rgb_top)
-            mats.append(int(mat))
-            owner.append(k)
-    if not centres:
-        z = np.zeros((0, 3), np.float32)
-        return ActorMesh(
-            np.zeros((0, 3, 3), np.float32),
-            z,
-            np.zeros((0, 3), np.uint8),
-            np.zeros(0, np.uint8),
-            np.zeros(0, np.int32),
-        )
-    tris = boxes_triangles(np.array(centres), np.array(sizes), np.array(yaws))  # (B, 12, 3, 3)
-    n = tris.shape[1]
-    colour = np.where(
-        BOX_FACE_TOP[None, :, None],
-        np.array(top, np.uint8)[:, None],
-        np.array(side, np.uint8)[:, None],
-    )  # (B, 12, 3)
-    tris = tris.reshape(-1, 3, 3)
-    return ActorMesh(
-        triangles_m=tris.astype(np.float32),
-        normals=triangle_normals(tris),
-        colour_rgb=colour.reshape(-1, 3),
-        material=np.repeat(np.array(mats, np.uint8), n),
-        actor=np.repeat(np.array(owner, np.int32), n),
-    )
-
-
-# ------------------------------------------------------------------------------------------
-# One frame's Embree scene
-
-
-_device = None
-
-
-def _embree_device():
-    global _device
-    if _device is None:
-        from embreex import rtcore
-
-        _device = rtcore.EmbreeDevice()
-    return _device
-
-
-def _embree_scene(triangles_m: np.ndarray):
-    """A committed embreex scene of (N, 3, 3) float32 triangles (primitive id = row)."""
-    from embreex import rtcore_scene
-    from embreex.mesh_construction import TriangleMesh
-
-    scene = rtcore_scene.EmbreeScene(_embree_device())
-    TriangleMesh(scene, np.ascontiguousarray(triangles_m, np.float32))
-    # embreex commits lazily on the first run(); commit now so the build is paid here.
-    scene.run(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32))
-    return scene
-
-
-@dataclass
-class FrameScene:
-    """The scene of one frame: a static Embree scene (tiles around the ego, kept across frames)
-    and an actor scene (this frame's agents), cast in turn.
-
-    Primitive ids are unified: 0..n_static-1 are static triangles, n_static.. actor triangles.
-
-    Attributes:
-        static_embree, actor_embree: committed embreex scenes (actor_embree None: no agents).
-        normals: (N, 3) float32; colour_rgb: (N, 3) uint8; material: (N,) uint8;
-        tag: (N,) int32 lamp tags (-1 elsewhere); actor: (N,) int32 agent index, -1 if static.
-        n_static: the first n_static primitives are static.
-        agents: the agents in the actor scene, in actor-index order.
-        actor_centres_m: (A, 3) float64 world centres of the agents' bounding spheres.
-        actor_radii_m: (A,) float64 their radii (half the box diagonal).
-        ray_log: if a list, every Embree call appends (scene, query, origins, directions,
-            dists) to it (bench/frame.py replays them as bare Embree calls).
-    """
-
-    static_embree: object
-    actor_embree: object | None
-    normals: np.ndarray
-    colour_rgb: np.ndarray
-    material: np.ndarray
-    tag: np.ndarray
-    actor: np.ndarray
-    n_static: int
-    agents: tuple[AgentState, ...]
-    actor_centres_m: np.ndarray
-    actor_radii_m: np.ndarray
-    ray_log: list | None = None
-
-    def _run(self, scene, origins, directions, dists, query="INTERSECT", output=None):
-        if self.ray_log is not None:
-            self.ray_log.append((scene, query, origins, directions, dists.copy()))
-        return scene.run(origins, directions, dists=dists, query=query, output=output)
-
-    def cast(
-        self,
-        origins: np.ndarray,
-        directions: np.ndarray,
-        max_dist_m: float,
-        actor_rays: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """First hits of rays: (N, 3) float32 origins and unit directions, world frame.
-
-        Args:
-            actor_rays: indices of the rays that may hit an agent (the sensor knows from the
-                agents' boxes or bounding spheres); None: all. Only these are cast into the
-                actor scene, bounded by their static hit.
-        Returns:
-            dist_m (N,) float32 (inf: no hit within max_dist_m), prim (N,) int32 (-1: none).
-        """
-        n = len(origins)
-        dists = np.full(n, max_dist_m, np.float32)
-        out = self._run(self.static_embree, origins, directions, dists, output=1)
-        prim, dist = out["primID"], out["tfar"]
-        if self.actor_embree is not None:
-            idx = np.arange(n) if actor_rays is None else actor_rays
-            if len(idx):
-                a = self._run(
-                    self.actor_embree,
-                    np.take(origins, idx, axis=0),
-                    np.take(directions, idx, axis=0),
-                    dist[idx],
-                    output=1,
-                )
-                hit = a["primID"] >= 0
-                prim[idx[hit]] = a["primID"][hit] + self.n_static
-                dist[idx[hit]] = a["tfar"][hit]
-        dist[prim < 0] = np.inf
-        return dist, prim
-
-    def distances(
-        self,
-        origins: np.ndarray,
-        directions: np.ndarray,
-        max_dist_m: float,
-        actor_rays: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Like `cast` but without the static primitive (a cheaper Embree query, what the
-        LiDAR needs): returns dist_m (N,) float32 (inf: no hit) and actor (N,) int32, the index
-        into `agents` of the agent hit first, -1 for static hits and misses."""
-        n = len(origins)
-        dists = np.full(n, max_dist_m, np.float32)
-        dist = self._run(self.static_embree, origins, directions, dists, "DISTANCE")
-        dist = np.minimum(dist, np.float32(max_dist_m)).astype(np.float32)
-        actor = np.full(n, -1, np.int32)
-        if self.actor_embree is not None:
-            idx = np.arange(n) if actor_rays is None else actor_rays
-            if len(idx):
-                a = self._run(
-                    self.actor_embree,
-                    np.take(origins, idx, axis=0),
-                    np.take(directions, idx, axis=0),
-                    dist[idx],
-                    output=1,
-                )
-                hit = a["primID"] >= 0
-                actor[idx[hit]] = self.actor[a["primID"][hit] + self.n_static]
-                dist[idx[hit]] = a["tfar"][hit]
-        dist[dist >= max_dist_m] = np.inf
-        return dist, actor
-
-    def occluded(
-        self,
-        origins: np.ndarray,
-        directions: np.ndarray,
-        max_dist_m: float,
-        actor_rays: np.ndarray | None = None,
-    ) -> np.ndarray:
-        """(N,) bool: does anything lie along each ray within max_dist_m (shadow rays).
-
-        Args:
-            directions: (N, 3) float32, or (1, 3) for one direction shared by all rays.
-            actor_rays: indices of the rays that may pass an agent; None: all.
-        """
-        dists = np.full(len(origins), max_dist_m, np.float32)
-        hit = self._run(self.static_embree, origins, directions, dists, "OCCLUDED") >= 0
-        if self.actor_embree is not None:
-            idx = np.flatnonzero(~hit) if actor_rays is None else actor_rays[~hit[actor_rays]]
-            if len(idx):
-                d = np.full(len(idx), max_dist_m, np.float32)
-                dirs = directions if len(directions) == 1 else np.take(directions, idx, axis=0)
-                a = self._run(self.actor_embree, np.take(origins, idx, axis=0), dirs, d, "OCCLUDED")
-                hit[idx[a >= 0]] = True
-        return hit
-
-
-class SceneBuilder:
-    """Builds each frame's `FrameScene` from a static scene.
-
-    The static Embree scene holds every tile within `reach_m` + REBUILD_M of the ego and is
-    rebuilt only when the ego has moved REBUILD_M from where it was built, so the sensors' reach
-    (`reach_m`: the longer of the LiDAR and camera ranges, plus the mounts' offset) is always
-    covered. The actor scene is built every frame from the agents within reach (never the ego).
-    """
-
-    REBUILD_M = 60.0  # measured trade-off, see the module docstring
-
-    def __init__(self, static: StaticScene, reach_m: float):
-        self.static = static
-        self.reach_m = reach_m
-        self._centres = static.tile_centres_m()
-        self._nonempty = np.diff(static.tile_start) > 0
-        self._built_at: np.ndarray | None = None
-        self._static = None
-        self.rebuilds = 0
-
-    def visible_tiles(self, xy_m: np.ndarray, radius_m: float) -> np.ndarray:
-        """Indices of the non-empty tiles holding a triangle within radius_m of xy_m."""
-        d = self._centres - xy_m
-        r = np.hypot(d[:, 0], d[:, 1])
-        return np.flatnonzero((r <= radius_m + self.static.tile_reach_m) & self._nonempty)
-
-    def _static_part(self, pose: Pose):
-        xy = np.array([pose.x_m, pose.y_m])
-        if self._built_at is None or np.hypot(*(xy - self._built_at)) > self.REBUILD_M:
-            st = self.static
-            tiles = self.visible_tiles(xy, self.reach_m + self.REBUILD_M)
-            starts, ends = st.tile_start[tiles], st.tile_start[tiles + 1]
-            lens = ends - starts
-            idx = np.repeat(starts - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens)
-            idx += np.arange(int(lens.sum()))
-            self._static = (
-                _embree_scene(st.triangles_m[idx]),
-                st.normals[idx],
-                st.colour_rgb[idx],
-                st.material[idx],
-                st.tag[idx],
-            )
-            self._built_at = xy
-            self.rebuilds += 1
-        return self._static
-
-    def build(self, frame: FrameState) -> FrameScene:
-        embree, normals, colour, material, tag = self._static_part(frame.ego.pose)
-        ex, ey = frame.ego.pose.x_m, frame.ego.pose.y_m
-        agents = tuple(
-            a
-            for a in frame.agents
-            if math.hypot(a.pose.x_m - ex, a.pose.y_m - ey) <= self.reach_m + a.length_m
-        )
-        actors = actor_mesh(agents)
-        centres = np.array(
-            [(a.pose.x_m, a.pose.y_m, a.height_m / 2) for a in agents], np.float64
-        ).reshape(-1, 3)
-        radii = np.array(
-            [0.5 * math.sqrt(a.length_m**2 + a.width_m**2 + a.height_m**2) for a in agents]
-        )
-        n_static, n_dyn = len(normals), len(actors.triangles_m)
-        return FrameScene(
-            static_embree=embree,
-            actor_embree=_embree_scene(actors.triangles_m) if n_dyn else None,
-            normals=np.concatenate([normals, actors.normals]),
-            colour_rgb=np.concatenate([colour, actors.colour_rgb]),
-            material=np.concatenate([material, actors.material]),
-            tag=np.concatenate([tag, np.full(n_dyn, -1, np.int32)]),
-            actor=np.concatenate([np.full(n_static, -1, np.int32), actors.actor]),
-            n_static=n_static,
-            agents=agents,
-            actor_centres_m=centres,
-            actor_radii_m=radii,
-        )
-
-
-def world_rays(
-    pose: Pose, directions_ego: np.ndarray, mount_x_m: float, mount_z_m: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Rays of a sensor mounted at (mount_x_m, 0, mount_z_m) in the ego frame of `pose`.
-
-    `directions_ego` is (N, 3) float32, unit vectors in the ego frame; returns world-frame
-    (origins, directions), each (N, 3) float32, shared by the LiDAR and the camera.
-    """
-    c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
-    d = directions_ego  # elementwise: numpy's float32 matmul with K=3 is ~10x slower
-    dirs = np.empty_like(d)
-    dirs[:, 0] = np.float32(c) * d[:, 0] - np.float32(s) * d[:, 1]
-    dirs[:, 1] = np.float32(s) * d[:, 0] + np.float32(c) * d[:, 1]
-    dirs[:, 2] = d[:, 2]
-    ox, oy = pose.world_from_ego(np.array([[mount_x_m, 0.0]]))[0]
-    origin = np.array([ox, oy, mount_z_m], np.float32)
-    return np.broadcast_to(origin, dirs.shape).copy(), dirs

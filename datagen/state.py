@@ -78,6 +78,9 @@ class FrameState:
         stop_sign: a stop-controlled entry on the route within 30 m.
         stop_distance_m: distance along the route to its stop line, None if no stop sign.
         expert_reason: the rule binding the expert's speed now (schemas.EXPERT_REASONS).
+        signals: (traffic light id, state) of every traffic light in the network, the state a
+            string with one SUMO signal character per controlled link (r, y, g, G, ...;
+            libsumo trafficlight.getRedYellowGreenState): what the camera lights heads with.
     """
 
     time_s: float
@@ -90,3 +93,4 @@ class FrameState:
     stop_sign: bool
     stop_distance_m: float | None
     expert_reason: str
+    signals: tuple[tuple[str, str], ...] = ()

@@ -25,8 +25,9 @@ from schemas.bev import (  # noqa: F401  (re-exported: the grid is part of the c
     ego_to_bev_px,
 )
 
-SCHEMA_VERSION = "1.0"
-"""major.minor: readers refuse a different major version; a minor bump only adds columns."""
+SCHEMA_VERSION = "1.1"
+"""major.minor: readers refuse a different major version; a minor bump only adds columns
+(ADDED_IN), which a file of an older minor version may lack. 1.1 adds `lidar_ground_t`."""
 
 # Keys of the file-level (schema) metadata. Values are UTF-8 strings; *_json values are JSON.
 META_SCHEMA_VERSION = "iidsu.schema_version"
@@ -152,6 +153,14 @@ FIELDS: tuple[pa.Field, ...] = (
         "BEV grid of the ego at t",
     ),
     _field(
+        "lidar_ground_t",
+        pa.binary(),
+        "256x256 uint8 PNG: at-ground LiDAR hits of the sweep at t only (ch0 of lidar_bev "
+        "without t-1, t-2; what a single-frame model sees); clipped at 255; since schema 1.1",
+        "count",
+        "BEV grid of the ego at t",
+    ),
+    _field(
         "bev_semantic",
         pa.binary(),
         "256x256 uint8 PNG of class ids: 0 other, 1 drivable, 2 lane marking",
@@ -168,6 +177,15 @@ FIELDS: tuple[pa.Field, ...] = (
 )
 
 COLUMNS: tuple[str, ...] = tuple(f.name for f in FIELDS)
+ADDED_IN: dict[str, str] = {"lidar_ground_t": "1.1"}
+"""Columns added by a minor version: files written before it (older minor) may lack them."""
+
+
+def _minor(version: str) -> int:
+    parts = version.split(".")
+    return int(parts[1]) if len(parts) > 1 and parts[1].isdigit() else 0
+
+
 CATEGORIES: dict[str, tuple[str, ...]] = {
     "weather": WEATHERS,
     "behaviour": BEHAVIOURS,
@@ -224,13 +242,17 @@ def validate(table: pa.Table, where: str = "table") -> None:
 
     Checks: schema version metadata, every column present with its exact Arrow type, no nulls
     in non-nullable columns, categorical values within their sets, and box classes/timesteps.
-    Extra columns are allowed (a later minor version may add some).
+    Extra columns are allowed (a later minor version may add some); a column added in a later
+    minor version than the file's (ADDED_IN) may be missing.
     """
     import pyarrow.compute as pc
 
-    check_version(table.schema.metadata, where)
+    version = check_version(table.schema.metadata, where)
     for field in FIELDS:
         if field.name not in table.schema.names:
+            added = ADDED_IN.get(field.name)
+            if added is not None and _minor(version) < _minor(added):
+                continue  # an older minor version's file, written before the column existed
             raise SchemaError(f"{where}: missing column '{field.name}'")
         actual = table.schema.field(field.name).type
         if not actual.equals(field.type):

@@ -61,6 +61,7 @@ def synthetic_table(
                 "expert_reason": "none",
                 "image": codecs.encode_image(image),
                 "lidar_bev": codecs.encode_lidar_bev(bev),
+                "lidar_ground_t": codecs.encode_lidar_ground(bev[..., 0]),
                 "bev_semantic": codecs.encode_bev_semantic(sem),
                 "boxes": boxes,
             }

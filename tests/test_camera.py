@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
 from datagen import camera
-from datagen.scene import SceneBuilder
+from datagen.raycast import SceneBuilder
 from datagen.state import Pose
 from tests.test_scene import EGO_POSE, agent_at, flat_scene, frame_at, shared_grid3
 
@@ -53,7 +54,7 @@ def test_box_appears_at_the_expected_pixels():
     empty, _, _ = _render(flat_scene(), frame_at())
     origins, dirs = cam.rays(frame.ego.pose)
     _, prim = fs.cast(origins, dirs, CFG.range_m)
-    is_car = (prim >= 0) & (fs.actor[np.maximum(prim, 0)] == 0)
+    is_car = (prim >= 0) & (fs.actor_of(prim) == 0)
     is_car = is_car.reshape(256, 256)
     # the box's centre projects onto a car pixel, and the car's pixels sit where the box is
     r, c = project(15.0, 2.5, 0.9)
@@ -129,21 +130,80 @@ def test_rain_streaks_follow_the_seed():
     assert not np.array_equal(a, c)
 
 
-@pytest.mark.parametrize("state,slot", [("red", 0), ("yellow", 1), ("green", 2), ("none", -1)])
-def test_only_the_heads_facing_the_ego_show_its_light(state, slot):
+def _signals_with(st, k: int, own: str, other: str) -> tuple[tuple[str, str], ...]:
+    """A state string for head k's light: `own` on head k's links, `other` on every other."""
+    tls = str(st.head_tls[k])
+    n = int(st.head_link_index.max()) + 1
+    chars = [other] * n
+    for i in st.head_link_index[st.head_link_start[k] : st.head_link_start[k + 1]]:
+        chars[i] = own
+    return ((tls, "".join(chars)),)
+
+
+def _facing_ego(st, k: int, distance_m: float) -> Pose:
+    """The ego approaching head k head-on from `distance_m`."""
+    facing = float(st.head_yaw_rad[k])
+    hx, hy = st.head_xy_m[k]
+    back = facing + math.pi
+    return Pose(hx - distance_m * math.cos(back), hy - distance_m * math.sin(back), back)
+
+
+@pytest.mark.parametrize("own,slot", [("r", 0), ("y", 1), ("G", 2), ("g", 2)])
+def test_every_head_shows_its_own_lights_state_whatever_the_label(own, slot):
     st = shared_grid3()[1]
     k = 0
-    facing = float(st.head_yaw_rad[k])
-    # the ego approaches head k head-on from 20 m
-    hx, hy = st.head_xy_m[k]
-    ego = Pose(
-        hx - 20 * math.cos(facing + math.pi), hy - 20 * math.sin(facing + math.pi), facing + math.pi
-    )
-    frame = frame_at(ego, traffic_light=state, light_distance_m=None if state == "none" else 19.0)
+    other = "r" if own != "r" else "G"
+    frame = frame_at(_facing_ego(st, k, 80.0), traffic_light="none")  # no light governs it
+    frame = dataclasses.replace(frame, signals=_signals_with(st, k, own, other))
     lit = camera.lit_slots(st, frame)
     assert lit[k] == slot
-    away = np.cos(st.head_yaw_rad - ego.yaw_rad) > 0  # heads facing away from the ego stay dark
-    assert (lit[away] == -1).all()
+    same = st.head_tls == st.head_tls[k]
+    links = [
+        set(st.head_link_index[st.head_link_start[h] : st.head_link_start[h + 1]].tolist())
+        for h in range(len(lit))
+    ]
+    cross = np.array([same[h] and not (links[h] & links[k]) for h in range(len(lit))])
+    assert cross.any() and (lit[cross] == camera.SUMO_LAMP_SLOT[other]).all()  # cross streets
+    assert (lit[~same] == -1).all()  # heads of lights with no state stay dark
+
+
+def test_a_lit_head_shows_in_the_image_when_the_label_is_none():
+    st = shared_grid3()[1]
+    k = 0
+    frame = frame_at(_facing_ego(st, k, 35.0), traffic_light="none")  # beyond 30 m: "none"
+    frame = dataclasses.replace(frame, signals=_signals_with(st, k, "G", "r"))
+    fs = SceneBuilder(st, reach_m=160.0).build(frame)
+    cam = camera.Camera(CFG)
+    w = camera.CAMERA_WEATHER["cloudy"]
+    lit = cam.render(
+        fs, frame.ego.pose, w, np.random.default_rng(0), SUN, camera.lit_slots(st, frame)
+    )
+    dark = cam.render(fs, frame.ego.pose, w, np.random.default_rng(0), SUN, None)
+    diff = np.abs(lit.astype(int) - dark.astype(int)).sum(2) > 60
+    assert diff.sum() >= 1
+    assert (lit[diff][:, 1] > lit[diff][:, 0]).all()  # the changed pixels are green
+
+
+def test_real_sumo_signals_light_heads_in_view_when_the_label_is_none():
+    from datagen.world import World, WorldConfig
+
+    net, st = shared_grid3()
+    seen_none_lit = seen_cross_differs = False
+    with World(WorldConfig(net_path=net, seed=4, weather="sunny", behaviour="normal")) as world:
+        for step in range(80):
+            if step:
+                world.advance(0.5)
+            if world.ended:
+                break
+            frame = world.state()
+            states = dict(frame.signals)
+            assert set(st.head_tls.tolist()) <= set(states)  # every head's light is read
+            lit = camera.lit_slots(st, frame)
+            assert (lit >= 0).all()  # SUMO programs here never switch a light off
+            if frame.traffic_light == "none":
+                seen_none_lit = True
+            seen_cross_differs |= len(set(lit.tolist())) > 1
+    assert seen_none_lit and seen_cross_differs
 
 
 def test_actor_pixel_window_loses_no_hits():
@@ -164,5 +224,5 @@ def test_actor_pixel_window_loses_no_hits():
     d_win, p_win = fs.cast(origins, dirs, CFG.range_m, window)
     np.testing.assert_array_equal(p_all, p_win)
     np.testing.assert_array_equal(d_all, d_win)
-    seen = set(fs.actor[p_all[p_all >= fs.n_static]].tolist())
+    seen = set(fs.actor_of(p_all[p_all >= fs.n_static]).tolist())
     assert {0, 1, 3} <= seen  # ahead, beside (partly in view), the pedestrian

@@ -71,6 +71,9 @@ def test_episode_sensor_columns_decode_with_history(run):
     assert codecs.decode_image(row["image"]).shape == (256, 256, 3)
     lidar = codecs.decode_lidar_bev(row["lidar_bev"])
     assert lidar[..., 0].sum() > 1000  # ground returns of three sweeps
+    ground_t = codecs.decode_lidar_ground(row["lidar_ground_t"])
+    assert ground_t.shape == (256, 256) and (ground_t <= lidar[..., 0]).all()
+    assert 0 < ground_t.sum() < lidar[..., 0].sum()  # the sweep at t alone, not t-1 and t-2
     sem = codecs.decode_bev_semantic(row["bev_semantic"])
     assert (sem[230:256, 120:136] > 0).mean() > 0.9  # the ego stands on the road
 

@@ -36,7 +36,7 @@ def test_drivable_lies_under_the_ego_on_a_real_lane():
     (x0, y0), (x1, y1) = lane.getShape()[0][:2], lane.getShape()[-1][:2]
     yaw = math.atan2(y1 - y0, x1 - x0)
     pose = Pose(x0 + 0.4 * (x1 - x0), y0 + 0.4 * (y1 - y0), yaw)
-    sem = labels.bev_semantic(grid3_scene, pose)
+    sem = labels.bev_semantic(grid3_scene.label_map, pose)
     assert sem.dtype == np.uint8 and sem.shape == (256, 256)
     assert set(np.unique(sem).tolist()) <= {0, 1, 2}
     # the ego's lane ahead of it (3.2 m wide = 25 px, centred on column 128) is road
@@ -56,7 +56,7 @@ def test_semantic_raster_puts_polygons_at_their_ego_frame_pixels():
     line = EGO_POSE.world_from_ego(np.array([[0.0, 1.9], [40.0, 1.9], [40.0, 2.1], [0.0, 2.1]]))
     walk = EGO_POSE.world_from_ego(np.array([[10.0, -4.0], [14.0, -4.0], [14.0, 0.0], [10.0, 0.0]]))
     st = assemble_static_scene(b, [road, walk, line], [1, 0, 2], terrain=False)
-    sem = labels.bev_semantic(st, EGO_POSE)
+    sem = labels.bev_semantic(st.label_map, EGO_POSE)
     x, y = bev_pixel_centres()
     inside_road = (np.abs(y) < 3.9) & (x < 31.9)
     assert (sem[(np.abs(y) > 4.2)] == 0).all()
@@ -131,8 +131,21 @@ def test_a_row_of_labels_satisfies_the_schema():
         behaviour="cautious",
         image=codecs.encode_image(np.zeros((256, 256, 3), np.uint8)),
         lidar_bev=codecs.encode_lidar_bev(np.zeros((256, 256, 4), np.uint8)),
+        lidar_ground_t=codecs.encode_lidar_ground(np.zeros((256, 256), np.uint8)),
         bev_semantic=codecs.encode_bev_semantic(np.zeros((256, 256), np.uint8)),
     )
     meta = schemas.file_metadata(generator_version="t", config={}, network_sha256="0" * 64, seed=0)
     table = pa.Table.from_pylist([row], schema=schemas.schema(meta))
     schemas.validate(table)
+
+
+def test_labels_do_not_import_the_render_scene():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, datagen.labels; "
+        "bad = [m for m in ('datagen.scene', 'datagen.raycast', 'datagen.actors') "
+        "if m in sys.modules]; assert not bad, bad"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)

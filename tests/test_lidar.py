@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from datagen import lidar
-from datagen.scene import SceneBuilder
+from datagen.raycast import SceneBuilder
 from datagen.state import Pose
 from schemas import bev_pixel_centres, ego_to_bev_px
 from tests.test_scene import EGO_POSE, agent_at, flat_scene, frame_at
@@ -79,6 +79,19 @@ def test_a_static_pole_stays_on_one_bev_pixel_while_the_ego_drives_past():
         w = bev[rows, cols, ch].astype(float)
         centroid = np.array([np.average(rows + 0.5, weights=w), np.average(cols + 0.5, weights=w)])
         assert np.abs(centroid - expected).max() < 1.5, (ch, centroid, expected)
+
+
+def test_ground_t_holds_only_the_current_sweeps_ground_hits():
+    static = flat_scene()
+    poses = [EGO_POSE, Pose(EGO_POSE.x_m + 5.0, EGO_POSE.y_m, EGO_POSE.yaw_rad)]
+    now, past = (_sweep(static, frame_at(p)) for p in poses)
+    counts = lidar.bev_counts([now, past, past])
+    ground_t = lidar.ground_channel(counts)
+    alone = lidar.bev_histogram([now])  # a single sweep: ch0 is its ground alone
+    np.testing.assert_array_equal(ground_t, alone[..., 0])
+    summed = lidar.lidar_bev_channels(counts)[..., 0].astype(int)
+    assert (summed >= ground_t).all() and summed.sum() > 2 * ground_t.sum()  # ch0 has the past too
+    assert ground_t.sum() > 1000
 
 
 def test_pose_noise_blurs_only_the_past_sweeps():

@@ -16,8 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from datagen import scene
-from datagen.scene import Material, MeshBuilder, SceneBuilder
+from datagen import actors, raycast, scene
+from datagen.mesh import Material, boxes_triangles
+from datagen.raycast import SceneBuilder
+from datagen.scene import MeshBuilder
 from datagen.state import AgentState, FrameState, Pose
 
 # ---------------------------------------------------------------------------- shared fixtures
@@ -79,7 +81,7 @@ def flat_scene(
     v = np.concatenate([ring, np.zeros((4, 1))], 1)
     b.add(np.stack([v[[0, 1, 2]], v[[0, 2, 3]]]), Material.ROAD)
     for centre, size, yaw in boxes:
-        tris = scene.boxes_triangles(np.array([centre]), np.array([size]), np.array([yaw]))[0]
+        tris = boxes_triangles(np.array([centre]), np.array([size]), np.array([yaw]))[0]
         b.add(tris, Material.POLE)
     return scene.assemble_static_scene(b, [ring], [1], terrain=False)
 
@@ -155,7 +157,8 @@ def test_buildings_stay_off_roads_and_sidewalks():
     from shapely.strtree import STRtree
 
     st = grid3_scene
-    rings = [st.bev_xy_m[st.bev_start[k] : st.bev_start[k + 1]] for k in range(len(st.bev_class))]
+    lm = st.label_map
+    rings = [lm.xy_m[lm.start[k] : lm.start[k + 1]] for k in range(len(lm.class_id))]
     tree = STRtree([Polygon(r).buffer(0) for r in rings])
     walls = st.triangles_m[st.material == Material.BUILDING]
     base = walls.reshape(-1, 3)
@@ -195,8 +198,12 @@ def test_static_scene_is_deterministic_and_cached(tmp_path):
     assert list(tmp_path.glob("*.npz")), "no cache file written"
     scene._loaded.clear()
     second = scene.load_static_scene(grid3_net, cache_dir=tmp_path)
-    for name in ("triangles_m", "material", "tile_start", "bev_xy_m", "head_xy_m"):
+    for name in ("triangles_m", "material", "tile_start", "head_xy_m"):
         np.testing.assert_array_equal(getattr(first, name), getattr(second, name))
+    for name in ("xy_m", "start", "class_id", "bbox_m"):
+        np.testing.assert_array_equal(
+            getattr(first.label_map, name), getattr(second.label_map, name)
+        )
 
 
 @pytest.mark.parametrize(
@@ -210,7 +217,7 @@ def test_static_scene_is_deterministic_and_cached(tmp_path):
 )
 def test_actor_boxes_fill_the_agents_extent(cls, dims):
     a = agent_at("a", 10.0, -3.0, 0.5, cls=cls, dims=dims)
-    mesh = scene.actor_mesh([a])
+    mesh = actors.actor_mesh([a])
     pts = mesh.triangles_m.reshape(-1, 3).astype(np.float64)
     local = a.pose.ego_from_world(pts[:, :2])
     L, W, H = dims
@@ -230,12 +237,23 @@ def test_frame_scene_excludes_the_ego_and_far_agents():
     far = agent_at("far", 400.0, 0.0)
     fs = SceneBuilder(st, reach_m=100.0).build(frame_at(agents=(near, far)))
     assert [a.track_id for a in fs.agents] == ["near"]
-    assert (fs.actor[: fs.n_static] == -1).all() and (fs.actor[fs.n_static :] == 0).all()
+    assert (fs.actors.actor == 0).all() and fs.n_static == st.n_triangles
 
 
-def test_static_scene_is_reused_until_the_ego_moves_away():
+def test_a_town_is_committed_once_per_process_and_reused_across_episodes():
     st = flat_scene()
-    builder = SceneBuilder(st, reach_m=100.0)
+    before = raycast.town_commits
+    for _episode in range(3):
+        builder = SceneBuilder(st, reach_m=100.0)
+        for k in range(3):
+            builder.build(frame_at(Pose(EGO_POSE.x_m + 70 * k, EGO_POSE.y_m, 0.0)))
+        assert builder.rebuilds == 0
+    assert raycast.town_commits == before + 1
+
+
+def test_culled_static_scene_is_reused_until_the_ego_moves_away():
+    st = flat_scene()
+    builder = SceneBuilder(st, reach_m=100.0, whole_town_max=0)
     builder.build(frame_at(Pose(EGO_POSE.x_m, EGO_POSE.y_m, 0.0)))
     builder.build(frame_at(Pose(EGO_POSE.x_m + 10, EGO_POSE.y_m, 1.0)))
     assert builder.rebuilds == 1

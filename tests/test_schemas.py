@@ -33,6 +33,16 @@ def test_rejects_missing_column():
         schemas.validate(table)
 
 
+def test_a_1_0_shard_without_lidar_ground_t_still_validates():
+    table = synthetic_table(2).drop_columns(["lidar_ground_t"])
+    with pytest.raises(schemas.SchemaError, match="missing column 'lidar_ground_t'"):
+        schemas.validate(table)  # a 1.1 file must have it
+    meta = dict(table.schema.metadata)
+    meta[schemas.META_SCHEMA_VERSION.encode()] = b"1.0"
+    schemas.validate(table.replace_schema_metadata(meta))  # a 1.0 file predates it
+    assert schemas.ADDED_IN["lidar_ground_t"] == schemas.SCHEMA_VERSION == "1.1"
+
+
 def test_rejects_wrong_type():
     table = synthetic_table(2)
     i = table.schema.get_field_index("frame")
@@ -65,6 +75,8 @@ def test_codecs_keep_channel_order():
     assert (codecs.decode_lidar_bev(codecs.encode_lidar_bev(bev)) == bev).all()
     sem = rng.integers(0, 3, (256, 256), dtype=np.uint8)
     assert (codecs.decode_bev_semantic(codecs.encode_bev_semantic(sem)) == sem).all()
+    ground = rng.integers(0, 255, (256, 256), dtype=np.uint8)
+    assert (codecs.decode_lidar_ground(codecs.encode_lidar_ground(ground)) == ground).all()
     red = np.zeros((64, 64, 3), np.uint8)
     red[..., 0] = 255
     assert codecs.decode_image(codecs.encode_image(red))[..., 0].mean() > 240

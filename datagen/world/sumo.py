@@ -453,6 +453,12 @@ class Sumo:
 
     # ------------------------------------------------------------------ time
 
+    def signal_states(self) -> tuple[tuple[str, str], ...]:
+        """(id, state string) of every traffic light (getRedYellowGreenState: one character
+        per controlled link)."""
+        tl = self._ls.trafficlight
+        return tuple((t, tl.getRedYellowGreenState(t)) for t in tl.getIDList())
+
     def step(self) -> None:
         self._ls.simulationStep()
 

@@ -607,6 +607,7 @@ class World:
             stop_sign=stop_d is not None,
             stop_distance_m=stop_d,
             expert_reason=self._reason,
+            signals=self._sumo.signal_states(),
         )
 
     def truth(self) -> EgoTruth:
