@@ -32,7 +32,7 @@ import numpy as np
 import schemas
 from datagen.errors import UserError
 from schemas import dataset
-from schemas.video import VideoError, VideoWriter
+from schemas.video import CODECS, VideoError, VideoWriter, prepare_output
 
 HELP = "draw a frame (PNG), an episode (video) or log it to Rerun: camera, LiDAR, BEV, labels"
 
@@ -185,6 +185,10 @@ def _run(args: argparse.Namespace) -> int:
         return write_png(path, args.frame, args.episode, Path(args.out or "frame.png"))
     if not args.speed > 0:
         raise UserError(f"--speed must be > 0, got {args.speed}")
+    if args.video is not None and Path(args.video).suffix.lower() not in CODECS:
+        raise UserError(f"{args.video}: a video must end in {' or '.join(CODECS)}")
+    if args.rerun is not None and Path(args.rerun).suffix != ".rrd":
+        raise UserError(f"{args.rerun}: a Rerun recording must end in .rrd")
     episode = args.episode
     if episode is None:
         episode = dataset.episode_ids(path)[0]
@@ -208,11 +212,7 @@ def _run(args: argparse.Namespace) -> int:
 def write_png(path: Path, frame: int, episode: str | None, out: Path) -> int:
     row = dataset.read_row(path, frame, episode)
     img = draw(row)
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise UserError(f"{out}: cannot write here ({e.strerror or e})") from None
-    partial = out.with_name(f".{out.stem}.partial{out.suffix}")
+    partial = prepare_output(out)
     try:
         ok = cv2.imwrite(str(partial), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
     except cv2.error:

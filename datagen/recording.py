@@ -36,6 +36,7 @@ import pyarrow as pa
 import schemas
 from datagen.errors import UserError
 from schemas import codecs, dataset
+from schemas.video import prepare_output
 
 BOX_HEIGHT_M = {"vehicle": 1.5, "pedestrian": 1.8, "bicycle": 1.6}  # drawn only
 EGO_SIZE_M = (4.7, 1.85, 1.5)  # drawn only (the same ego box as the inspect PNG)
@@ -62,13 +63,7 @@ def write(table: pa.Table, out: Path) -> None:
 
     if out.suffix != ".rrd":
         raise UserError(f"{out}: a Rerun recording must end in .rrd")
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        if not os.access(out.parent, os.W_OK):
-            raise PermissionError("permission denied")
-    except OSError as e:
-        raise UserError(f"{out}: cannot write here ({e.strerror or e})") from None
-    partial = out.with_name(f".{out.stem}.partial{out.suffix}")
+    partial = prepare_output(out)
     rows = table.to_pylist()
     rec = rr.RecordingStream("iidsu", recording_id=rows[0]["episode_id"])
     try:

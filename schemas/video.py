@@ -13,6 +13,7 @@ import `datagen/`.
 
 The file appears under its name only when `close()` has finished it (written to a hidden
 `.NAME.partial.EXT` beside it, then renamed); on an error nothing is left under either name.
+`prepare_output` gives the same rule to the PNGs and Rerun recordings the viewers write.
 """
 
 from __future__ import annotations
@@ -36,7 +37,25 @@ X264_OPTIONS = {"crf": "23", "preset": "veryfast"}
 
 
 class VideoError(ValueError):
-    """An output path that cannot take a video (suffix, directory); one-line message."""
+    """An output path that cannot take the file (suffix, folder); one-line message."""
+
+
+def partial_path(path: Path) -> Path:
+    """Where a file for `path` is written until complete: hidden `.NAME.partial.EXT` beside it
+    (the suffix kept, so encoders choose their format by it)."""
+    return path.with_name(f".{path.stem}.partial{path.suffix}")
+
+
+def prepare_output(path: Path) -> Path:
+    """Create `path`'s folder if needed and return its `partial_path`; VideoError in one line
+    if the folder cannot be made or written to."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if not os.access(path.parent, os.W_OK):
+            raise PermissionError("permission denied")
+    except OSError as e:
+        raise VideoError(f"{path}: cannot write here ({e.strerror or e})") from None
+    return partial_path(path)
 
 
 class VideoWriter:
@@ -52,13 +71,7 @@ class VideoWriter:
         if not fps > 0:
             raise VideoError(f"frame rate must be > 0, got {fps}")
         self.fps, self.quiet, self.frames = fps, quiet, 0
-        self.partial = self.path.with_name(f".{self.path.stem}.partial{self.path.suffix}")
-        try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            if not os.access(self.path.parent, os.W_OK):
-                raise PermissionError("permission denied")
-        except OSError as e:
-            raise VideoError(f"{self.path}: cannot write here ({e.strerror or e})") from None
+        self.partial = prepare_output(self.path)
         self._container = self._stream = self._cv = None
         self.codec = self._open_av(suffix)
 

@@ -3,8 +3,8 @@
 A shard directory is discovered with `schemas.dataset.shard_files` (`*.parquet` at any depth,
 skipping names that start with `_` or `.`, as pandas does, and non-Parquet files such as
 `data/README.md`). Frames are numbered in the order `pd.read_parquet(DIR)` returns them for a
-directory of shards: shard files in sorted path order, rows in file order. `train show --frame N` uses this
-number.
+directory of shards: shard files in sorted path order, rows in file order. `train show --frame N`
+uses this number.
 
     index = scan("data/")                                  # one row per frame, cheap columns
     is_val = split(index, val_fraction=0.1)                # whole episodes only

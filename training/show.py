@@ -32,7 +32,7 @@ import torch
 
 from schemas import BEV_SIZE_PX, FRAME_RATE_HZ, WEATHERS, ego_to_bev_px
 from schemas.dataset import box_corners
-from schemas.video import VideoError, VideoWriter
+from schemas.video import VideoError, VideoWriter, prepare_output
 from training import data
 from training.checkpoint import load_checkpoint, model_from_checkpoint
 from training.errors import UserError
@@ -219,10 +219,9 @@ def run(args) -> int:
     figure = render(sample, _forward(model, [sample]), model.cfg.output_px)
     path = Path(args.out) if args.out else Path(args.ckpt).parent / f"show-{args.frame}.png"
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise UserError(f"{path}: cannot write here ({e.strerror or e})") from None
-    partial = path.with_name(f".{path.stem}.partial{path.suffix}")
+        partial = prepare_output(path)
+    except VideoError as e:
+        raise UserError(str(e)) from None
     if not cv2.imwrite(str(partial), cv2.cvtColor(figure, cv2.COLOR_RGB2BGR)):
         partial.unlink(missing_ok=True)
         raise UserError(f"{path}: could not write the PNG (is the suffix .png?)")
