@@ -237,7 +237,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--frames", type=int, default=PAPER_FRAMES, help="frames in total (default: %(default)s)"
     )
     p.add_argument("--seed", type=int, default=0, help="the build's seed (default: 0)")
-    p.add_argument("--out", type=Path, default=Path("data"), help="output directory (data/)")
+    p.add_argument("--out", type=Path, default=Path("data/shards"), help="output dir (%(default)s)")
     p.add_argument(
         "--workers", type=int, default=None, help="parallel episodes (default: all cores)"
     )

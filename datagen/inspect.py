@@ -1,7 +1,9 @@
-"""`datagen inspect`: draw one stored frame the way the paper's Fig. 5 does.
+"""`datagen inspect`: draw stored frames the way the paper's Fig. 5 does; a frame, a video, Rerun.
 
     datagen inspect data/ --frame 10 --out frame.png
-    datagen inspect data/grid_small/grid_small-7-0.parquet --frame 3 --out f.png
+    datagen inspect data/shards/grid_small/grid_small-7-0000.parquet --frame 3 --out f.png
+    datagen inspect data/ --episode grid_small-7-0000 --video episode.mp4 --speed 4
+    datagen inspect data/ --episode grid_small-7-0000 --rerun episode.rrd   # then: rerun episode.rrd
 
 Left: the camera crop above the current LiDAR BEV (grey: at-ground returns of t, t-1, t-2;
 orange: above-ground returns at t). Middle: the BEV map (grey drivable area, white lane markings,
@@ -10,21 +12,29 @@ t+1.0 s (outlines, fading), the expert's waypoints (blue) and the target point (
 at the border if it lies off the grid). Right: traffic light, stop sign, weather, behaviour,
 command, speed and the expert's reason.
 
-`--frame N` counts rows across the shards in path order (files starting with `_` are skipped);
-with `--episode ID` it is that episode's `frame` number instead.
+`--frame N` counts rows across the shards in read order (`schemas.dataset.shard_files`); with
+`--episode ID` it is that episode's `frame` number instead. `--video` draws every frame of the
+episode (the first one in read order without `--episode`) into an H.264 `.mp4` (or VP9 `.webm`)
+at the recording rate (2 Hz) times `--speed`; `--rerun` logs it to a Rerun recording
+(datagen/recording.py).
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
+import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+import schemas
 from datagen.errors import UserError
+from schemas import dataset
+from schemas.video import CODECS, VideoError, VideoWriter, prepare_output
 
-HELP = "draw one frame: camera, LiDAR BEV, BEV map with boxes and waypoints, labels (Fig. 5)"
+HELP = "draw a frame (PNG), an episode (video) or log it to Rerun: camera, LiDAR, BEV, labels"
 
 SCALE = 2  # BEV map drawn at 2x
 BEV_COLOURS_RGB = np.array([(0, 0, 0), (123, 123, 123), (228, 228, 228)], np.uint8)  # paper Fig. 5
@@ -45,71 +55,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("path", metavar="SHARD_OR_DIR", help="a shard (.parquet) or a dataset directory")
     p.add_argument("--frame", type=int, default=0, help="row to draw (default 0)")
     p.add_argument("--episode", default=None, help="pick this episode; --frame is its frame number")
-    p.add_argument("--out", default="frame.png", help="PNG to write (default frame.png)")
-
-
-def shard_files(path: Path) -> list[Path]:
-    """The shards under a path (itself if a file), in path order, skipping `_*` names."""
-    if path.is_file():
-        return [path]
-    if not path.is_dir():
-        raise UserError(f"{path}: no such file or directory")
-    files = sorted(
-        p
-        for p in path.rglob("*.parquet")
-        if not any(part.startswith("_") for part in p.relative_to(path).parts)
+    p.add_argument("--out", default=None, help="PNG to write (default frame.png)")
+    p.add_argument(
+        "--video", metavar="MP4", default=None, help="draw every frame of the episode to a video"
     )
-    if not files:
-        raise UserError(f"{path}: no .parquet shards")
-    return files
-
-
-def read_row(path: Path, frame: int, episode: str | None = None) -> dict:
-    """One row of the dataset at `path` as a dict of Python values."""
-    import pyarrow.parquet as pq
-
-    import schemas
-
-    if frame < 0:
-        raise UserError(f"--frame must be >= 0, got {frame}")
-    seen = 0
-    for f in shard_files(path):
-        try:
-            pf = pq.ParquetFile(f)
-        except Exception as e:  # noqa: BLE001  (a broken file is a user-facing error)
-            raise UserError(f"{f}: not a readable Parquet file ({e})") from e
-        schemas.check_version(pf.schema_arrow.metadata, str(f))
-        if episode is not None:
-            t = pf.read(columns=["episode_id", "frame"])
-            ids, frames = t.column("episode_id").to_numpy(), t.column("frame").to_numpy()
-            hit = np.flatnonzero((ids == episode) & (frames == frame))
-            if len(hit):
-                return pf.read().slice(int(hit[0]), 1).to_pylist()[0]
-            continue
-        n = pf.metadata.num_rows
-        if frame < seen + n:
-            return pf.read().slice(frame - seen, 1).to_pylist()[0]
-        seen += n
-    if episode is not None:
-        raise UserError(f"{path}: no frame {frame} of episode {episode!r}")
-    raise UserError(f"{path}: frame {frame} out of range ({seen} rows)")
+    p.add_argument(
+        "--speed", type=float, default=1.0, help="video speed-up over the recording's 2 Hz (1)"
+    )
+    p.add_argument(
+        "--rerun", metavar="RRD", default=None, help="log the episode to a Rerun .rrd recording"
+    )
 
 
 def _ego_to_px(xy: np.ndarray) -> np.ndarray:
-    """(N, 2) ego-frame points -> (N, 2) float (x=col, y=row) in the 2x BEV drawing."""
-    from schemas import ego_to_bev_px
-
-    row, col = ego_to_bev_px(xy[:, 0], xy[:, 1])
-    return np.stack([col, row], 1) * SCALE
+    """(..., 2) ego-frame points -> (..., 2) float (x=col, y=row) in the 2x BEV drawing."""
+    row, col = schemas.ego_to_bev_px(xy[..., 0], xy[..., 1])
+    return np.stack([col, row], -1) * SCALE
 
 
 def _box_px(x: float, y: float, yaw: float, length: float, width: float) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    corners = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]]) * [length / 2, width / 2]
-    xy = np.stack(
-        [x + c * corners[:, 0] - s * corners[:, 1], y + s * corners[:, 0] + c * corners[:, 1]], 1
-    )
-    return _ego_to_px(xy)
+    return _ego_to_px(dataset.box_corners(x, y, yaw, length, width))
 
 
 def _poly(img: np.ndarray, pts: np.ndarray, rgb, filled: bool, thickness: int = 1) -> None:
@@ -208,11 +173,70 @@ def draw(row: dict) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> int:
-    row = read_row(Path(args.path), args.frame, args.episode)
+    try:
+        return _run(args)
+    except (dataset.DatasetError, schemas.SchemaError, VideoError) as e:
+        raise UserError(str(e)) from None
+
+
+def _run(args: argparse.Namespace) -> int:
+    path = Path(args.path)
+    if args.video is None and args.rerun is None:
+        return write_png(path, args.frame, args.episode, Path(args.out or "frame.png"))
+    if not args.speed > 0:
+        raise UserError(f"--speed must be > 0, got {args.speed}")
+    if args.video is not None and Path(args.video).suffix.lower() not in CODECS:
+        raise UserError(f"{args.video}: a video must end in {' or '.join(CODECS)}")
+    if args.rerun is not None and Path(args.rerun).suffix != ".rrd":
+        raise UserError(f"{args.rerun}: a Rerun recording must end in .rrd")
+    episode = args.episode
+    if episode is None:
+        episode = dataset.episode_ids(path)[0]
+        print(f"no --episode given: using the first one, {episode}", file=sys.stderr)
+    if args.rerun is not None:
+        from datagen import recording
+
+        recording.check_installed()
+    table = dataset.read_episode(path, episode)
+    if args.out is not None:
+        write_png(path, args.frame, episode, Path(args.out))
+    if args.video is not None:
+        write_video(table.to_pylist(), Path(args.video), args.speed)
+    if args.rerun is not None:
+        start = time.perf_counter()
+        recording.write(table, Path(args.rerun))
+        print(f"wrote {args.rerun} ({table.num_rows} frames, {time.perf_counter() - start:.1f} s)")
+    return 0
+
+
+def write_png(path: Path, frame: int, episode: str | None, out: Path) -> int:
+    row = dataset.read_row(path, frame, episode)
     img = draw(row)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(out), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)):
-        raise UserError(f"{out}: cannot write the image (is the extension .png?)")
+    partial = prepare_output(out)
+    try:
+        ok = cv2.imwrite(str(partial), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+    except cv2.error:
+        ok = False
+    if not ok:
+        partial.unlink(missing_ok=True)
+        raise UserError(
+            f"{out}: cannot write the image (is the extension .png and the folder writable?)"
+        )
+    partial.replace(out)
     print(f"wrote {out} ({row['episode_id']} frame {row['frame']})")
     return 0
+
+
+def write_video(rows: list[dict], out: Path, speed: float = 1.0) -> None:
+    """Every row (one episode's frames, in order) drawn by `draw` into the video `out`, played
+    at the recording rate times `speed`; prints what it wrote and how long it took."""
+    start = time.perf_counter()
+    fps = schemas.FRAME_RATE_HZ * speed
+    with VideoWriter(out, fps) as video:
+        for row in rows:
+            video.write(draw(row))
+    seconds = time.perf_counter() - start
+    print(
+        f"wrote {out} ({video.frames} frames at {fps:g} fps, {video.codec}, "
+        f"{out.stat().st_size / 1e6:.1f} MB) in {seconds:.1f} s"
+    )

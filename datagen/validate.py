@@ -30,6 +30,7 @@ import pyarrow.parquet as pq
 import schemas
 from datagen.errors import UserError
 from schemas import codecs
+from schemas.dataset import shard_files
 
 HELP = "check every shard of a dataset (schema, manifest row counts, decodable images)"
 MANIFEST = "_manifest.json"
@@ -145,23 +146,10 @@ def _first_line(e: BaseException) -> str:
     return text.splitlines()[0] if text else type(e).__name__
 
 
-def find_shards(root: Path) -> list[Path]:
-    """Data files as readers see them: *.parquet, skipping names starting with `_` or `.`."""
-    out = []
-    for dirpath, dirnames, filenames in os.walk(root):
-        dirnames[:] = sorted(d for d in dirnames if not d.startswith(("_", ".")))
-        out += [
-            Path(dirpath) / f
-            for f in sorted(filenames)
-            if f.endswith(".parquet") and not f.startswith(("_", "."))
-        ]
-    return out
-
-
 def validate_dir(root: Path, workers: int = 1) -> tuple[list[ShardReport], list[str], int]:
     """(shard reports, dataset-level problems, total rows) for the dataset in `root`."""
     root = Path(root)
-    paths = find_shards(root)
+    paths = shard_files(root)
     if workers > 1 and len(paths) > 1:
         import multiprocessing as mp
 

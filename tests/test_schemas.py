@@ -92,7 +92,7 @@ def test_bev_grid_puts_ego_at_bottom_centre():
 
 
 def test_every_column_is_documented_in_data_readme():
-    text = (Path(__file__).parents[1] / "data" / "_README.md").read_text()
+    text = (Path(__file__).parents[1] / "data" / "README.md").read_text()
     documented = set(re.findall(r"^\| `(\w+)`", text, flags=re.M))
     missing = [c for c in schemas.COLUMNS if c not in documented]
-    assert not missing, f"data/_README.md does not document {missing}"
+    assert not missing, f"data/README.md does not document {missing}"

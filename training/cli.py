@@ -234,6 +234,18 @@ def _add_show(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--frame", type=int, default=0, metavar="N", help=f"frame number; {FRAME_ORDER}")
     p.add_argument("--out", metavar="PNG", help="PNG to write; default show-FRAME.png beside CKPT")
+    p.add_argument("--episode", metavar="ID", help="pick this episode; --frame is its frame number")
+    p.add_argument(
+        "--video",
+        metavar="MP4",
+        help="draw every frame of the episode (default: the first) to an .mp4 or .webm",
+    )
+    p.add_argument(
+        "--speed",
+        type=_positive_float,
+        default=1.0,
+        help="video speed-up over the recording's 2 Hz (default 1)",
+    )
 
 
 def _run_show(args) -> int:
@@ -246,7 +258,7 @@ COMMANDS = {
     "fit": ("train the model; writes OUT/last.pt and OUT/metrics.jsonl", _add_fit, _run_fit),
     "eval": ("planning, detection, BEV, traffic and weather metrics", _add_eval, _run_eval),
     "analyze": ("cosine similarity of ECA channel weights (Table II)", _add_analyze, _run_analyze),
-    "show": ("a PNG of one frame's inputs and predictions (Fig. 5)", _add_show, _run_show),
+    "show": ("a PNG or video of inputs and predictions (Fig. 5)", _add_show, _run_show),
 }
 
 

@@ -1,9 +1,10 @@
 """Streaming reader of the v1 shards: frame index, episode split, decoded samples, DataLoader.
 
-A shard directory is discovered with `pyarrow.dataset` (files whose names start with `_` or `.`
-are skipped, as pandas does). Frames are numbered in the order `pd.read_parquet(DIR)` returns
-them: shard files in sorted path order, rows in file order. `train show --frame N` uses this
-number.
+A shard directory is discovered with `schemas.dataset.shard_files` (`*.parquet` at any depth,
+skipping names that start with `_` or `.`, as pandas does, and non-Parquet files such as
+`data/README.md`). Frames are numbered in the order `pd.read_parquet(DIR)` returns them for a
+directory of shards: shard files in sorted path order, rows in file order. `train show --frame N`
+uses this number.
 
     index = scan("data/")                                  # one row per frame, cheap columns
     is_val = split(index, val_fraction=0.1)                # whole episodes only
@@ -25,13 +26,13 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pyarrow.compute as pc
-import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 import schemas
 from schemas import codecs
+from schemas.dataset import DatasetError, shard_files
 from training.errors import UserError
 from training.targets import render_density
 
@@ -63,11 +64,10 @@ def scan(path: str | Path) -> pd.DataFrame:
         UserError: no such path, no shards in it, a file that is not Parquet, or a shard of
             another schema version or with missing or mistyped columns.
     """
-    p = Path(path)
-    if not p.exists():
-        raise UserError(f"{path}: no such file or directory")
-    # With the schema given, discovery lists files without opening them; we check each below.
-    files = ds.dataset(p, format="parquet", schema=schemas.SCHEMA).files
+    try:
+        files = [str(f) for f in shard_files(path)]
+    except DatasetError as e:
+        raise UserError(str(e)) from None
     if not files:
         raise UserError(f"{path}: no shards (*.parquet files) in this directory")
     parts = []

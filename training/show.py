@@ -1,6 +1,10 @@
-"""`train show`: one frame's inputs, predictions and truth as a PNG (after the paper's Fig. 5).
+"""`train show`: a frame's (or an episode's) inputs, predictions and truth (after Fig. 5).
 
     train show --ckpt runs/demo/last.pt --shards data/ --frame 10 --out runs/demo/show.png
+    train show --ckpt runs/demo/last.pt --shards data/ --episode ID --video show.mp4 --speed 4
+
+`--video` draws every frame of the episode (the first in frame order without `--episode`) into
+an H.264 `.mp4` (or VP9 `.webm`; schemas/video.py) at the recording rate (2 Hz) times `--speed`.
 
 Eight 256x256 panels, every BEV panel on the shards' grid (32 m ahead, 16 m each side, the
 ego's box at the bottom centre):
@@ -12,18 +16,23 @@ ego's box at the bottom centre):
 
 Colours as in the paper's Fig. 5: drivable area grey, lane markings white, background black,
 ego red, other agents yellow, waypoints blue (expert waypoints green on the truth panel).
-Frames are numbered as `pd.read_parquet(DIR)` orders them (training/data.py).
+Frames are numbered as `pd.read_parquet(DIR)` orders them (training/data.py); with
+`--episode`, `--frame` is that episode's frame number.
 """
 
 from __future__ import annotations
 
+import sys
+import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
 
-from schemas import BEV_SIZE_PX, WEATHERS, ego_to_bev_px
+from schemas import BEV_SIZE_PX, FRAME_RATE_HZ, WEATHERS, ego_to_bev_px
+from schemas.dataset import box_corners
+from schemas.video import VideoError, VideoWriter, prepare_output
 from training import data
 from training.checkpoint import load_checkpoint, model_from_checkpoint
 from training.errors import UserError
@@ -34,6 +43,7 @@ PANEL = BEV_SIZE_PX  # panel side, px: the BEV grid at its own resolution, 8 px/
 MAP_COLOURS = np.array([(0, 0, 0), (123, 123, 123), (228, 228, 228)], np.uint8)  # RGB
 EGO, AGENT, WAYPOINT, EXPERT = (255, 0, 0), (223, 218, 8), (0, 0, 255), (0, 200, 0)
 EGO_BOX = (1.0, 0.0, 0.0, 1.8, 4.5, 0.0)  # drawn only; the shards do not store the ego's size
+VIDEO_BATCH = 16  # frames per forward pass while drawing a video
 
 
 def _px(x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
@@ -45,11 +55,8 @@ def _px(x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
 def _draw_box(img: np.ndarray, obj, colour, filled: bool = True) -> None:
     """obj: (score, x m, y m, width m, length m, yaw rad), ego frame, as targets.py decodes."""
     _, x, y, width, length, yaw = obj
-    c, s = np.cos(yaw), np.sin(yaw)
-    corners = np.array([(1, 1), (1, -1), (-1, -1), (-1, 1)]) * (length / 2, width / 2)
-    xs = x + corners[:, 0] * c - corners[:, 1] * s
-    ys = y + corners[:, 0] * s + corners[:, 1] * c
-    pts = _px(xs, ys)
+    corners = box_corners(x, y, yaw, length, width)  # (4, 2) m, ego frame
+    pts = _px(corners[:, 0], corners[:, 1])
     if filled:
         cv2.fillPoly(img, [pts], colour)
     else:
@@ -173,20 +180,71 @@ def render(sample: dict, out: dict[str, torch.Tensor], output_px: int) -> np.nda
     return np.concatenate(rows, axis=0)
 
 
+def _episode_frames(index, episode: str | None):
+    """The frames of `episode` (default: the first in frame order) in `index`, by frame."""
+    if episode is None:
+        episode = index.episode_id.iloc[0]
+        print(f"no --episode given: using the first one, {episode}", file=sys.stderr)
+    frames = index[index.episode_id == episode].sort_values("frame")
+    if frames.empty:
+        some = ", ".join(index.episode_id.unique()[:4])
+        raise UserError(f"--episode {episode!r}: not in the shards (they hold {some}, ...)")
+    return frames
+
+
+def _forward(model, samples: list[dict]) -> dict[str, torch.Tensor]:
+    inputs = [torch.as_tensor(np.stack([np.asarray(s[k]) for s in samples])) for k in INPUTS]
+    return model(*inputs)
+
+
 @torch.no_grad()
 def run(args) -> int:
     state = load_checkpoint(args.ckpt)
     model = model_from_checkpoint(state, "cpu")
     index = data.scan(args.shards)
+    if getattr(args, "video", None):
+        try:
+            return write_video(model, _episode_frames(index, args.episode), args.video, args.speed)
+        except VideoError as e:
+            raise UserError(str(e)) from None
+    if getattr(args, "episode", None) is not None:
+        frames = _episode_frames(index, args.episode)
+        hit = frames.index[frames.frame == args.frame]
+        if not len(hit):
+            raise UserError(f"--frame {args.frame}: episode {args.episode!r} has no such frame")
+        args.frame = int(index.index.get_loc(hit[0]))
     if not 0 <= args.frame < len(index):
         raise UserError(f"--frame {args.frame}: the shards hold frames 0..{len(index) - 1}")
     sample = data.read_frames(index.iloc[[args.frame]], model.cfg.output_px)[0]
-    inputs = [torch.as_tensor(np.asarray(sample[k]))[None] for k in INPUTS]
-    out = model(*inputs)
-    figure = render(sample, out, model.cfg.output_px)
+    figure = render(sample, _forward(model, [sample]), model.cfg.output_px)
     path = Path(args.out) if args.out else Path(args.ckpt).parent / f"show-{args.frame}.png"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), cv2.cvtColor(figure, cv2.COLOR_RGB2BGR)):
+    try:
+        partial = prepare_output(path)
+    except VideoError as e:
+        raise UserError(str(e)) from None
+    if not cv2.imwrite(str(partial), cv2.cvtColor(figure, cv2.COLOR_RGB2BGR)):
+        partial.unlink(missing_ok=True)
         raise UserError(f"{path}: could not write the PNG (is the suffix .png?)")
+    partial.replace(path)
     print(f"wrote {path} (frame {args.frame}: {sample['episode_id']} frame {sample['frame']})")
+    return 0
+
+
+def write_video(model, frames, out: str | Path, speed: float = 1.0) -> int:
+    """The model's predictions over `frames` (one episode's rows of the frame index, in order)
+    drawn by `render` into the video `out` at the recording rate times `speed`."""
+    start = time.perf_counter()
+    fps = FRAME_RATE_HZ * speed
+    with VideoWriter(out, fps) as video:
+        for i in range(0, len(frames), VIDEO_BATCH):
+            samples = data.read_frames(frames.iloc[i : i + VIDEO_BATCH], model.cfg.output_px)
+            out_batch = _forward(model, samples)
+            for k, sample in enumerate(samples):
+                one = {name: value[k : k + 1] for name, value in out_batch.items()}
+                video.write(render(sample, one, model.cfg.output_px))
+    size_mb = Path(out).stat().st_size / 1e6
+    print(
+        f"wrote {out} ({video.frames} frames of {frames.episode_id.iloc[0]} at {fps:g} fps, "
+        f"{video.codec}, {size_mb:.1f} MB) in {time.perf_counter() - start:.1f} s"
+    )
     return 0
