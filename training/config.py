@@ -143,6 +143,6 @@ PRESETS: dict[str, tuple[ModelConfig, TrainConfig]] = {
             output_px=64,
             decoder_width=32,
         ),
-        TrainConfig(batch_size=8, lr=1e-3, warmup_frac=0.05, num_workers=1, shuffle_buffer=64),
+        TrainConfig(batch_size=8, lr=1e-3, warmup_frac=0.05, num_workers=1, shuffle_buffer=256),
     ),
 }
