@@ -87,7 +87,9 @@ class ModelConfig:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Optimisation, data and loss weights (paper Sec. III-C). Defaults suit the paper model."""
+    """Optimisation, data and loss weights. The paper gives the loss's form (Sec. III-C) but
+    none of these values: AdamW at 1e-4 is TransFuser's (Prakash et al. 2021); the batch,
+    epochs, schedule and loss weights are ours (see `train fit --help`)."""
 
     shards: str = "data"
     out: str = "runs/iidsu"
@@ -108,7 +110,8 @@ class TrainConfig:
     val_metrics: bool = True  # `train eval`'s metrics on the held-out frames every epoch
     # Loss weights: L = l_wp L_wp + l_O (alpha L_heat + beta L_reg) + l_M L_M
     #                   + l_tf (gamma L_light + delta L_sign) + l_wc L_wc   (Sec. III-C).
-    # Planning dominates (the paper's wish); the rest only gives F_DSU prior knowledge.
+    # The weights are ours (the paper gives none): planning dominates, as Sec. III-C wishes;
+    # the rest only gives F_DSU prior knowledge.
     lambda_wp: float = 1.0
     lambda_o: float = 0.2
     lambda_m: float = 0.2
