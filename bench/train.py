@@ -8,7 +8,13 @@
    batch) and the process's peak resident memory;
 2. the loader: decoded samples/s with 0, 1 and 2 DataLoader workers, per worker, at the tiny
    (R = 64) and paper (R = 256) target resolutions, on synthetic shards (noise images: JPEG
-   decoding is slower than for real camera frames, so these are lower bounds) or `--shards`;
+   decoding is slower than for real camera frames, so these are lower bounds) or `--shards`,
+   for the shuffling reader with 64 open row groups (the default) and with 1 (whole row groups
+   one after another: the frame order of the reader before issue 13);
+2b. batch composition: distinct episodes per 32-frame batch on the index of a 146,880-frame
+   build (8 towns x 51 episodes x 360 frames, one row group per episode as datagen's 32 MB
+   target gives), from the loader's own schedule (`FrameStream.keys`, no decoding), with 2 and
+   4 workers (the DataLoader takes batch j from worker j mod W);
 3. `train fit --config tiny --epochs 1` end to end on 200 synthetic frames (the demo's size);
 4. the paper config's parameter count, and where CUDA is available, its training samples/s and
    peak GPU memory in bf16 on the GPU (compare with the loader's samples/s per worker to see how
@@ -19,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import os
 import resource
 import sys
@@ -28,6 +35,8 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as `train` sets it (training/cli.py)
 
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
 import torch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests/
@@ -77,13 +86,49 @@ def train_rate(preset: str, batch: dict, device: torch.device, steps: int) -> fl
     return steps * len(batch["speed"]) / (time.perf_counter() - t0)
 
 
-def loader_rate(root: Path, output_px: int, workers: int, n: int) -> float:
-    index = data.scan(root).iloc[:n]
-    stream = data.FrameStream(index, output_px, shuffle=True, buffer_size=64)
+def loader_rate(root: Path, output_px: int, workers: int, n: int, open_units: int) -> float:
+    """Samples/s of the first `n` samples of a shuffled epoch over all of `root`'s frames."""
+    stream = data.FrameStream(
+        data.scan(root), output_px, shuffle=True, buffer_size=64, open_units=open_units
+    )
     loader = data.make_loader(stream, 8, workers)
     t0 = time.perf_counter()
-    count = sum(len(b["speed"]) for b in loader)
+    count = sum(len(b["speed"]) for b in itertools.islice(loader, n // 8))
     return count / (time.perf_counter() - t0)
+
+
+def paper_scale_index(towns: int = 8, episodes: int = 51, frames: int = 360) -> pd.DataFrame:
+    """A `data.scan` result for a 146,880-frame build: one shard and row group per episode."""
+    parts = []
+    for t in range(towns):
+        for e in range(episodes):
+            episode = f"town{t}-0-{e:04d}"
+            parts.append(
+                pd.DataFrame(
+                    {
+                        "path": f"/nonexistent/town{t}/{episode}.parquet",
+                        "row_group": 0,
+                        "row": np.arange(frames),
+                        "episode_id": episode,
+                        "town": f"town{t}",
+                        "frame": np.arange(frames),
+                    }
+                )
+            )
+    return pd.concat(parts, ignore_index=True)
+
+
+def episodes_per_batch(
+    index: pd.DataFrame, batch: int, workers: int, open_units: int, buffer: int
+) -> np.ndarray:
+    """Distinct episodes in each full batch of an epoch, as the DataLoader would cut them."""
+    stream = data.FrameStream(index, 256, shuffle=True, buffer_size=buffer, open_units=open_units)
+    counts = []
+    for w in range(workers):
+        keys = [episode for episode, _ in stream.keys(w, workers)]
+        for i in range(0, len(keys) - batch + 1, batch):
+            counts.append(len(set(keys[i : i + batch])))
+    return np.array(counts)
 
 
 def main() -> None:
@@ -110,9 +155,26 @@ def main() -> None:
         print(f"\n2. loader (decode JPEG/PNG + render targets) on {where}, samples/s:")
         for R in (64, 256):
             for workers in (0, 1, 2):
-                r = loader_rate(where, R, workers, n=200)
+                rates = [loader_rate(where, R, workers, 200, k) for k in (64, 1)]
                 print(
-                    f"   R={R:<3}  workers={workers}: {r:6.1f}  ({r / max(workers, 1):.1f} per worker)"
+                    f"   R={R:<3}  workers={workers}: 64 open row groups {rates[0]:6.1f} "
+                    f"({rates[0] / max(workers, 1):.1f} per worker); 1 open (previous order) "
+                    f"{rates[1]:6.1f} ({rates[1] / max(workers, 1):.1f}); "
+                    f"ratio {rates[0] / rates[1]:.2f}"
+                )
+
+        paper = PRESETS["paper"][1]
+        index = paper_scale_index()
+        print(
+            f"\n2b. distinct episodes per batch of {paper.batch_size}, {len(index)}-frame index, "
+            f"shuffle buffer {paper.shuffle_buffer} (mean, min, max over an epoch's batches):"
+        )
+        for workers in (2, 4):
+            for k in (1, paper.open_row_groups):
+                n = episodes_per_batch(index, paper.batch_size, workers, k, paper.shuffle_buffer)
+                print(
+                    f"   workers={workers}, {k:>2} open row group(s): {n.mean():5.1f}, "
+                    f"{n.min()}, {n.max()}  ({len(n)} batches)"
                 )
 
         cfg = dataclasses.replace(

@@ -2,15 +2,16 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
 import schemas
-from schemas import WEATHERS
+from schemas import WEATHERS, codecs
 from tests.synthetic import synthetic_table
 from training import data
 from training.errors import UserError
-from training.targets import centres_to_objects, decode_centres, render_density
+from training.targets import centres_to_objects, decode_centres, render_density, visible_boxes
 
 
 def write_shards(
@@ -136,3 +137,111 @@ def test_bad_directories_give_clear_errors(tmp_path):
     pq.write_table(synthetic_table(2).drop_columns(["boxes"]), tmp_path / "new.parquet")
     with pytest.raises(UserError, match="missing column 'boxes'"):
         data.scan(tmp_path)
+
+
+def test_keys_give_the_streamed_order(shards):
+    index = data.scan(shards)
+    for shuffle in (True, False):
+        stream = data.FrameStream(index, 32, shuffle=shuffle, seed=5, buffer_size=3, open_units=2)
+        stream.set_epoch(2)
+        assert list(stream.keys()) == [(s["episode_id"], s["frame"]) for s in stream]
+
+
+def _paper_scale_index(episodes: int, frames: int) -> pd.DataFrame:
+    """The index of `episodes` one-row-group shards of `frames` frames (no files behind it)."""
+    return pd.DataFrame(
+        {
+            "path": np.repeat([f"/none/e{e}.parquet" for e in range(episodes)], frames),
+            "row_group": 0,
+            "row": np.tile(np.arange(frames), episodes),
+            "episode_id": np.repeat([f"e{e}" for e in range(episodes)], frames),
+            "town": "t",
+            "frame": np.tile(np.arange(frames), episodes),
+        }
+    )
+
+
+def test_batches_mix_many_episodes_of_a_large_build():
+    # 400 episodes of 360 frames, each one row group (as datagen writes them): a whole-group
+    # reader gave batches of 32 frames from ~6 episodes; interleaving 64 open groups, >= 16.
+    index = _paper_scale_index(400, 360)
+    stream = data.FrameStream(index, 64, shuffle=True, buffer_size=512, open_units=64)
+    counts, seen = [], []
+    for worker in (0, 1):
+        keys = list(stream.keys(worker, 2))
+        seen += keys
+        counts += [len({e for e, _ in keys[i : i + 32]}) for i in range(0, len(keys) - 31, 32)]
+    assert sorted(seen) == sorted(zip(index.episode_id, index.frame))  # each frame once
+    assert np.mean(counts) >= 16
+    whole = data.FrameStream(index, 64, shuffle=True, buffer_size=512, open_units=1)
+    keys = list(whole.keys(0, 2))
+    assert np.mean([len({e for e, _ in keys[i : i + 32]}) for i in range(0, 3200, 32)]) < 8
+
+
+def test_downsampling_keeps_lane_markings():
+    bev = np.zeros((256, 256), np.uint8)
+    bev[:, 64:192] = 1  # a 16 m road
+    bev[:, 127] = 2  # a one-pixel (12 cm) centre line
+    small = data.downsample_bev(bev, 64)
+    assert small.shape == (64, 64)
+    assert (small[:, 31] == 2).all() and (small == 2).sum() == 64
+    assert (small[:, 16:31] == 1).all() and (small[:, :16] == 0).all()
+    assert (data.downsample_bev(bev, 256) == bev).all()
+
+
+def test_detection_targets_need_lidar_hits():
+    boxes = {
+        "track_id": np.array(["seen", "seen", "hidden", "hidden", "late"], object),
+        "t": np.array([0, 1, 0, 2, 1]),
+        "lidar_points": np.array([12, 0, 3, 0, 0]),
+    }
+    kept = visible_boxes(boxes, min_lidar_points=8)
+    assert kept["track_id"].tolist() == ["seen", "seen"] and kept["t"].tolist() == [0, 1]
+    assert len(visible_boxes(boxes, 0)["t"]) == 5
+
+
+def test_targets_and_eval_truth_skip_agents_without_lidar_hits(tmp_path):
+    table = synthetic_table(2, "e-0-0", "alpha")
+    boxes = table.column("boxes").to_pylist()
+    for frame in boxes:
+        for box in frame:
+            if box["track_id"] == "veh1" and box["t"] == 0:
+                box["lidar_points"] = 2  # veh1 hidden, veh0 seen (40 hits)
+    table = table.set_column(
+        table.schema.get_field_index("boxes"),
+        table.schema.field("boxes"),
+        pa.array(boxes, table.schema.field("boxes").type),
+    )
+    (tmp_path / "alpha").mkdir()
+    pq.write_table(table, tmp_path / "alpha" / "e-0-0.parquet")
+    sample = data.read_frames(data.scan(tmp_path).iloc[[0]], 64)[0]
+    assert sample["centre_mask"].sum(1).tolist() == [1, 1, 1]
+    everyone = data.read_frames(data.scan(tmp_path).iloc[[0]], 64, min_lidar_points=0)[0]
+    assert everyone["centre_mask"].sum(1).tolist() == [2, 2, 2]
+
+
+def _with_ground_t(table, ground):
+    column = pa.array([codecs.encode_bev_semantic(g) for g in ground], pa.binary())
+    return table.append_column(data.GROUND_T, column)
+
+
+def test_single_frame_lidar_reads_the_current_sweeps_ground_hits(tmp_path):
+    table = synthetic_table(3, "e-0-0", "alpha")
+    ground = [np.full((256, 256), 7 + i, np.uint8) for i in range(3)]
+    (tmp_path / "new" / "alpha").mkdir(parents=True)
+    pq.write_table(_with_ground_t(table, ground), tmp_path / "new" / "alpha" / "e-0-0.parquet")
+    index = data.scan(tmp_path / "new")
+    multi = data.read_frames(index, 32)
+    single = list(data.FrameStream(index, 32, single_frame_lidar=True))
+    assert [s["lidar"].shape for s in single] == [(2, 256, 256)] * 3
+    for i, (m, s) in enumerate(zip(multi, single)):
+        assert m["lidar"].shape == (4, 256, 256)
+        assert (s["lidar"][0] == 7 + i).all()  # lidar_ground_t, not ch0's three-sweep sum
+        assert (s["lidar"][1] == m["lidar"][1]).all()  # above-ground hits at t
+    # A dataset written before the column existed: one clear error for the ablation only.
+    (tmp_path / "old" / "alpha").mkdir(parents=True)
+    pq.write_table(table, tmp_path / "old" / "alpha" / "e-0-0.parquet")
+    old = data.scan(tmp_path / "old")
+    assert len(list(data.FrameStream(old, 32))) == 3
+    with pytest.raises(UserError, match="no 'lidar_ground_t' column.*--single-frame-lidar"):
+        data.FrameStream(old, 32, single_frame_lidar=True)

@@ -6,12 +6,15 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import pytest
 import torch
 
 from tests.test_training_data import write_shards
-from training import data, fit
+from training import curves, data, fit
 from training.config import PRESETS
+from training.errors import UserError
+from training.losses import loss_terms
 
 TINY_MODEL, TINY_TRAIN = PRESETS["tiny"]
 
@@ -76,6 +79,14 @@ def test_resume_continues_with_identical_state(shards, tmp_path, monkeypatch):
 
     assert losses(whole) == losses(resumed)
 
+    def steps(path):  # the per-step log, cut back to the checkpoint and continued
+        lines = (path.parent / fit.STEPS).read_text().splitlines()
+        return [
+            {k: v for k, v in m.items() if k != "samples_per_s"} for m in map(json.loads, lines)
+        ]
+
+    assert steps(whole) == steps(resumed) and len(steps(whole)) == 2
+
 
 def test_ddp_runs_with_two_cpu_processes(shards, tmp_path):
     out = tmp_path / "ddp"
@@ -92,3 +103,38 @@ def test_ddp_runs_with_two_cpu_processes(shards, tmp_path):
     assert state["step"] == math.ceil(12 / 2 / 2)
     (metrics,) = map(json.loads, (out / "metrics.jsonl").read_text().splitlines())
     assert metrics["val"]["total"] > 0 and metrics["train"]["total"] > 0
+
+
+def test_fit_logs_every_term_to_jsonl_and_tensorboard(shards, tmp_path):
+    event_accumulator = pytest.importorskip(
+        "tensorboard.backend.event_processing.event_accumulator"
+    )
+    out = tmp_path / "run"
+    fit.fit(TINY_MODEL, _train_cfg(shards, out, epochs=2))
+    terms = set(loss_terms(TINY_MODEL.heads))
+    steps = [json.loads(line) for line in (out / fit.STEPS).read_text().splitlines()]
+    assert [s["step"] for s in steps] == [3, 6]  # the last step of each epoch (3 per epoch)
+    assert all(set(s["train"]) == terms and s["lr"] > 0 and s["samples_per_s"] > 0 for s in steps)
+    epochs = [json.loads(line) for line in (out / fit.METRICS).read_text().splitlines()]
+    assert {"ade_m", "cv_ade_m", "weather_accuracy", "red_light_f1", "iou_lane_marking"} <= set(
+        epochs[-1]["val_metrics"]
+    )
+    (events,) = (out / fit.TENSORBOARD).glob("events.out.tfevents.*")
+    acc = event_accumulator.EventAccumulator(str(events))
+    acc.Reload()
+    tags = set(acc.Tags()["scalars"])
+    assert {f"step/train/{t}" for t in terms} | {"step/lr", "step/samples_per_s"} <= tags
+    assert {f"epoch/val/{t}" for t in terms} | {"epoch/val_metrics/ade_m", "epoch/lr"} <= tags
+    assert [e.step for e in acc.Scalars("step/train/total")] == [3, 6]
+    assert acc.Scalars("step/train/total")[-1].value == pytest.approx(steps[-1]["train"]["total"])
+
+
+def test_curves_draw_a_png_without_tensorboard(shards, tmp_path):
+    pytest.importorskip("matplotlib")
+    out = tmp_path / "run"
+    fit.fit(TINY_MODEL, _train_cfg(shards, out, epochs=1))
+    png = curves.draw(out, tmp_path / "curves.png")
+    image = cv2.imread(str(png))
+    assert image is not None and image.shape[0] > 200 and image.std() > 0
+    with pytest.raises(UserError, match="no steps.jsonl or metrics.jsonl"):
+        curves.draw(tmp_path, tmp_path / "x.png")

@@ -88,7 +88,10 @@ def test_each_ablation_removes_its_head_and_loss(switch, head, terms, tmp_path_f
 def test_single_frame_lidar_reads_two_channels():
     model = IIDSU(dataclasses.replace(TINY, single_frame_lidar=True))
     assert model.lidar_encoder.stem[0].in_channels == 2
-    assert model(*_inputs(1))["planning"].shape == (1, 4, 2)
+    image, lidar, speed, target = _inputs(1)
+    assert model(image, lidar[:, :2], speed, target)["planning"].shape == (1, 4, 2)
+    with pytest.raises(ValueError, match="4 channels; this model takes 2"):
+        model(image, lidar, speed, target)  # the summed ground channel: refused, not sliced
 
 
 def _batch(tmp_path_factory, n: int) -> dict:

@@ -1,9 +1,21 @@
 """`train analyze`: how close each auxiliary head's channel attention is to planning's (Table II).
 
-Each head re-weights the channels of F_DSU with its own ECA module (training/model.py). For a
-frame, head h's weights are a vector w_h in (0, 1)^C; we report cos(w_h, w_planning), averaged
-over frames spread evenly over the shard directory (the weights depend on the frame, through
-ECA's global pooling).
+Each head re-weights the channels of F_DSU with its own ECA module (training/model.py): for a
+frame, head h's weights are a vector w_h = sigmoid(conv1d_h(pool(F_DSU))) in (0, 1)^C. The
+paper (Sec. IV-C, Table II) reports "the cosine similarity of each auxiliary task's channel
+weights and the planning head's channel weights", without saying how it was averaged or
+normalised. Three forms, each averaged over frames spread evenly over the shard directory:
+
+- raw: cos(w_h, w_planning), the literal reading. All weights are positive, so two unrelated
+  weight vectors already score high (for i.i.d. uniform weights, E cos = 0.75): a raw figure
+  near 0.7 means nothing by itself.
+- centred: the cosine of the weights minus their mean over channels, i.e. Pearson's correlation
+  across channels. Unrelated weights score 0 and opposite ones -1, as the paper's 0.22-0.65
+  suggest theirs did.
+- kernel: the cosine of the two heads' learnt ECA kernels (k = 5 numbers each; frame-independent).
+
+The same figures for an untrained model of the same config (seed 0) are printed beside them as
+the reference line: what shared input statistics alone give before any task has shaped ECA.
 
     train analyze --ckpt runs/demo/last.pt                 # frames of the fit's --shards
     train analyze --ckpt runs/demo/last.pt --shards data_test/ --frames 1000
@@ -22,25 +34,36 @@ from training import data
 from training.checkpoint import load_checkpoint, model_from_checkpoint
 from training.errors import UserError
 from training.fit import autocast, choose_device, to_device
+from training.model import IIDSU
 
 LABELS = {"detection": "det&pred", "bev": "BEV", "traffic": "traffic", "weather": "weather"}
+FORMS = ("raw", "centred", "kernel")
 
 
 @torch.no_grad()
-def eca_similarity(model, loader, device: torch.device) -> dict[str, float]:
-    """Mean over frames of cos(ECA weights of head h, ECA weights of planning), per aux head."""
+def eca_similarity(model, loader, device: torch.device) -> dict[str, dict[str, float]]:
+    """Per auxiliary head, each of FORMS (module docstring) against the planning head."""
     aux = [h for h in model.cfg.heads if h != "planning"]
-    sums, n = dict.fromkeys(aux, 0.0), 0
+    sums, n = {h: {"raw": 0.0, "centred": 0.0} for h in aux}, 0
     for batch in loader:
         batch = to_device(batch, device)
         with autocast(device):
             f = model.encode(batch["image"], batch["lidar"], batch["speed"])
         plan = model.eca["planning"].weights(f.float())  # (B, C)
         for h in aux:
-            sims = F.cosine_similarity(model.eca[h].weights(f.float()), plan, dim=1)
-            sums[h] += sims.sum().item()
+            w = model.eca[h].weights(f.float())
+            sums[h]["raw"] += F.cosine_similarity(w, plan, dim=1).sum().item()
+            centred = F.cosine_similarity(
+                w - w.mean(1, keepdim=True), plan - plan.mean(1, keepdim=True), dim=1
+            )
+            sums[h]["centred"] += centred.sum().item()
         n += len(f)
-    return {h: s / n for h, s in sums.items()}
+    kernel = model.eca["planning"].conv.weight.flatten()
+    out = {}
+    for h in aux:
+        k = F.cosine_similarity(model.eca[h].conv.weight.flatten(), kernel, dim=0).item()
+        out[h] = {"raw": sums[h]["raw"] / n, "centred": sums[h]["centred"] / n, "kernel": k}
+    return out
 
 
 def run(args) -> int:
@@ -54,13 +77,33 @@ def run(args) -> int:
         raise UserError(f"{args.ckpt}: the model has no auxiliary head to compare")
     index = data.scan(shards)
     picks = np.unique(np.linspace(0, len(index) - 1, min(args.frames, len(index))).astype(int))
-    stream = data.FrameStream(index.iloc[picks], model.cfg.output_px)
-    sims = eca_similarity(model, data.make_loader(stream, args.batch_size, 0), device)
-    print(f"cosine similarity of ECA channel weights, mean over {len(picks)} frames of {shards}")
-    for h, s in sims.items():
-        print(f"  plan x {LABELS[h]:<10}{s:.4f}")
+
+    def measure(m) -> dict:
+        stream = data.FrameStream(
+            index.iloc[picks], m.cfg.output_px, single_frame_lidar=m.cfg.single_frame_lidar
+        )
+        return eca_similarity(m, data.make_loader(stream, args.batch_size, 0), device)
+
+    trained = measure(model)
+    torch.manual_seed(0)
+    untrained = measure(IIDSU(model.cfg).to(device).eval())
+    print(f"ECA channel weights vs planning's, mean over {len(picks)} frames of {shards}")
+    print(
+        f"  {'':<18}"
+        + "".join(f"{f:>9}" for f in FORMS)
+        + "   | untrained:"
+        + "".join(f"{f:>9}" for f in FORMS)
+    )
+    for h in trained:
+        row = "".join(f"{trained[h][f]:9.4f}" for f in FORMS)
+        ref = "".join(f"{untrained[h][f]:9.4f}" for f in FORMS)
+        print(f"  plan x {LABELS[h]:<10}{row}   |           {ref}")
+    print("  raw: cosine of sigmoid weights (unrelated ~0.75); centred: across-channel")
+    print("  correlation (unrelated 0); kernel: cosine of the ECA conv kernels")
     out = Path(args.out) if args.out else Path(args.ckpt).with_suffix(".analyze.json")
     result = {"checkpoint": str(args.ckpt), "shards": str(shards), "frames": len(picks)}
-    out.write_text(json.dumps({**result, "cosine_similarity": sims}, indent=2) + "\n")
+    result["cosine_similarity"] = {h: v["raw"] for h, v in trained.items()}
+    result["trained"], result["untrained"] = trained, untrained
+    out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {out}")
     return 0

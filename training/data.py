@@ -34,7 +34,7 @@ import schemas
 from schemas import codecs
 from schemas.dataset import DatasetError, shard_files
 from training.errors import UserError
-from training.targets import render_density
+from training.targets import MIN_LIDAR_POINTS, render_density, visible_boxes
 
 COLUMNS = (
     "episode_id",
@@ -52,6 +52,12 @@ COLUMNS = (
     "boxes",
 )
 """The shard columns a training sample is made of."""
+
+GROUND_T = "lidar_ground_t"
+"""Schema 1.1's column of the current sweep's at-ground hits (256x256 uint8 1-channel PNG, the
+same BEV grid as `lidar_bev`): what the single-frame ablation needs instead of ch0, which sums
+three sweeps. Read only for that ablation."""
+DRIVABLE, LANE = schemas.BEV_CLASSES.index("drivable"), schemas.BEV_CLASSES.index("lane_marking")
 
 
 def scan(path: str | Path) -> pd.DataFrame:
@@ -119,9 +125,10 @@ def _row_arrays(table: pa.Table) -> dict:
     of their fields with each row's start offset."""
     table = table.combine_chunks()
     n = table.num_rows
-    col = {name: table.column(name).chunk(0) for name in COLUMNS}
+    col = {name: table.column(name).chunk(0) for name in table.column_names}
     out = {name: col[name].to_pylist() for name in ("episode_id", "weather", "traffic_light")}
-    out.update({name: col[name].to_pylist() for name in ("image", "lidar_bev", "bev_semantic")})
+    binary = ("image", "lidar_bev", "bev_semantic", GROUND_T)
+    out.update({name: col[name].to_pylist() for name in binary if name in col})
     out["frame"] = col["frame"].to_numpy()
     out["ego_speed"] = col["ego_speed"].to_numpy()
     out["stop_sign"] = col["stop_sign"].to_numpy(zero_copy_only=False)
@@ -130,33 +137,52 @@ def _row_arrays(table: pa.Table) -> dict:
     lengths = col["boxes"].value_lengths().to_numpy(zero_copy_only=False)
     out["box_start"] = np.concatenate([[0], np.cumsum(lengths)])
     flat = col["boxes"].flatten()
-    out["boxes"] = {
-        f: pc.struct_field(flat, f).to_numpy(zero_copy_only=False)
-        for f in ("t", "x", "y", "yaw", "length", "width")
-    }
+    fields = ("track_id", "t", "x", "y", "yaw", "length", "width", "lidar_points")
+    out["boxes"] = {f: pc.struct_field(flat, f).to_numpy(zero_copy_only=False) for f in fields}
     return out
 
 
-def _sample(rows: dict, i: int, output_px: int) -> dict:
+def downsample_bev(classes: np.ndarray, output_px: int) -> np.ndarray:
+    """A (256, 256) uint8 BEV class map -> (R, R), R dividing 256, keeping thin classes.
+
+    Each output pixel covers a k x k block (k = 256 / R). It is lane_marking if any pixel of the
+    block is (markings are 1-2 px wide at 8 px/m: nearest-neighbour sampling at R = 64 keeps one
+    pixel in 16 and loses most of them), else drivable if at least half the block is road
+    surface (drivable or marking), else other.
+    """
+    k = classes.shape[0] // output_px
+    if k == 1:
+        return classes
+    if k * output_px != classes.shape[0]:
+        raise ValueError(f"R = {output_px} does not divide the {classes.shape[0]} px BEV map")
+    blocks = classes.reshape(output_px, k, output_px, k)
+    lane = (blocks == LANE).any(axis=(1, 3))
+    road = (blocks >= DRIVABLE).mean(axis=(1, 3)) >= 0.5
+    return np.where(lane, LANE, np.where(road, DRIVABLE, 0)).astype(np.uint8)
+
+
+def _sample(rows: dict, i: int, output_px: int, min_lidar_points: int = MIN_LIDAR_POINTS) -> dict:
     """Decode row `i` of `_row_arrays` output into one training sample (numpy arrays).
 
-    Inputs: image (3, 256, 256) uint8 RGB; lidar (4, 256, 256) uint8 counts ch0..ch3; speed ()
-    float32 m/s; target_point (2,) float32 m ego. Targets: waypoints (4, 2) float32 m ego;
-    heatmap, centre_* (training/targets.py); bev (R, R) uint8 class ids; traffic (2,) float32
-    (red light, stop sign); weather () int64 index into schemas.WEATHERS. Keys: episode_id, frame.
+    Inputs: image (3, 256, 256) uint8 RGB; lidar (4, 256, 256) uint8 counts ch0..ch3, or, when
+    the rows carry `lidar_ground_t` (the single-frame ablation), (2, 256, 256): the current
+    sweep's at-ground and above-ground hits; speed () float32 m/s; target_point (2,) float32 m
+    ego. Targets: waypoints (4, 2) float32 m ego; heatmap, centre_* (training/targets.py) of the
+    agents with >= `min_lidar_points` LiDAR returns at t; bev (R, R) uint8 class ids
+    (`downsample_bev`); traffic (2,) float32 (red light, stop sign); weather () int64 index
+    into schemas.WEATHERS. Keys: episode_id, frame.
     """
-    import cv2
-
     a, b = rows["box_start"][i], rows["box_start"][i + 1]
-    density = render_density({k: v[a:b] for k, v in rows["boxes"].items()}, output_px)
-    bev = codecs.decode_bev_semantic(rows["bev_semantic"][i])
-    if bev.shape[0] != output_px:  # nearest: class ids must not blend (thins lane markings)
-        bev = cv2.resize(bev, (output_px, output_px), interpolation=cv2.INTER_NEAREST)
+    boxes = visible_boxes({k: v[a:b] for k, v in rows["boxes"].items()}, min_lidar_points)
+    density = render_density(boxes, output_px)
+    bev = downsample_bev(codecs.decode_bev_semantic(rows["bev_semantic"][i]), output_px)
+    lidar = codecs.decode_lidar_bev(rows["lidar_bev"][i]).transpose(2, 0, 1)
+    if GROUND_T in rows:  # the current sweep only: ground hits at t, above-ground hits at t
+        ground_t = codecs.decode_bev_semantic(rows[GROUND_T][i])  # the same 1-channel PNG codec
+        lidar = np.stack([ground_t, lidar[1]])
     return {
         "image": np.ascontiguousarray(codecs.decode_image(rows["image"][i]).transpose(2, 0, 1)),
-        "lidar": np.ascontiguousarray(
-            codecs.decode_lidar_bev(rows["lidar_bev"][i]).transpose(2, 0, 1)
-        ),
+        "lidar": np.ascontiguousarray(lidar),
         "speed": np.float32(rows["ego_speed"][i]),
         "target_point": rows["target_point"][i].astype(np.float32),
         "waypoints": rows["waypoints"][i].astype(np.float32),
@@ -171,15 +197,38 @@ def _sample(rows: dict, i: int, output_px: int) -> dict:
     }
 
 
-def read_frames(index: pd.DataFrame, output_px: int) -> list[dict]:
-    """Decoded samples for every frame of `index` (a slice of `scan`'s result), in its order."""
+def read_frames(
+    index: pd.DataFrame,
+    output_px: int,
+    single_frame_lidar: bool = False,
+    min_lidar_points: int = MIN_LIDAR_POINTS,
+) -> list[dict]:
+    """Decoded samples for every frame of `index` (a slice of `scan`'s result), in its order.
+    `single_frame_lidar` and `min_lidar_points` as for `FrameStream`."""
+    columns = input_columns(index, single_frame_lidar)
     samples = {}
     for (path, rg), group in index.groupby(["path", "row_group"], sort=False):
-        table = pq.ParquetFile(path).read_row_group(rg, columns=list(COLUMNS))
+        table = pq.ParquetFile(path).read_row_group(rg, columns=columns)
         rows = _row_arrays(table.take(group.row.to_numpy()))
         for k, position in enumerate(group.index):
-            samples[position] = _sample(rows, k, output_px)
+            samples[position] = _sample(rows, k, output_px, min_lidar_points)
     return [samples[position] for position in index.index]
+
+
+def input_columns(index: pd.DataFrame, single_frame_lidar: bool = False) -> list[str]:
+    """The columns to read for samples of `index`'s frames; with `single_frame_lidar`, also
+    `lidar_ground_t`, and a UserError if a shard of `index` lacks it (datasets written before
+    schema 1.1 store ground hits summed over three sweeps only)."""
+    if not single_frame_lidar:
+        return list(COLUMNS)
+    for path in index.path.unique():
+        if GROUND_T not in pq.read_schema(path).names:
+            raise UserError(
+                f"{path}: no '{GROUND_T}' column (the current sweep's ground hits), which "
+                "--single-frame-lidar needs; this dataset predates schema 1.1: rebuild it with "
+                "`datagen build`, or train without --single-frame-lidar"
+            )
+    return [*COLUMNS, GROUND_T]
 
 
 @dataclass(frozen=True)
@@ -188,21 +237,101 @@ class _Unit:
 
     path: str
     row_group: int
-    rows: np.ndarray  # (n,) int, positions within the row group
+    rows: np.ndarray  # (n,) int, ascending positions within the row group
+
+
+READ_ROWS = 4
+"""Rows a worker reads from one row group at a time when shuffling. Small, so that consecutive
+reads come from many episodes; the cost of a read (a pyarrow call and `_row_arrays` on a 4-row
+table, ~0.3 ms) stays small beside decoding four frames (~5 ms each; bench/train.py)."""
+
+
+def _interleave(units: list[_Unit], open_units: int, rng: np.random.Generator):
+    """The shuffled reading schedule of one worker: (unit number, start, stop) steps.
+
+    Up to `open_units` row groups are open at once; each step picks one of them at random and
+    reads its next READ_ROWS positions [start, stop) (in file order, up to the group's last
+    wanted row); a finished group is replaced by the next unit of `units`. k indexes `units`.
+    """
+    pending = iter(range(len(units)))
+    active: list[list[int]] = []  # [unit number, next position]
+    while True:
+        while len(active) < open_units:
+            k = next(pending, None)
+            if k is None:
+                break
+            if len(units[k].rows):
+                active.append([k, 0])
+        if not active:
+            return
+        j = int(rng.integers(len(active)))
+        k, start = active[j]
+        stop = min(start + READ_ROWS, int(units[k].rows[-1]) + 1)
+        yield k, start, stop
+        if stop > units[k].rows[-1]:
+            active[j] = active[-1]
+            active.pop()
+        else:
+            active[j][1] = stop
+
+
+class _Readers:
+    """A worker's open row groups, each read front to back in slices of rows. pyarrow's
+    buffered stream reads a column chunk page by page, so an open group holds a few pages
+    (about a megabyte), not the whole group (tens of MB)."""
+
+    def __init__(self, columns: list[str]):
+        self.columns = columns
+        self.open: dict[tuple[str, int], list] = {}  # unit -> [batches, table, first row of it]
+
+    def read(self, unit: _Unit, start: int, stop: int) -> pa.Table:
+        """Rows [start, stop) of `unit`'s row group; each call continues where the last ended."""
+        key = (unit.path, unit.row_group)
+        if key not in self.open:
+            shard = pq.ParquetFile(unit.path, buffer_size=1 << 20)
+            batches = shard.iter_batches(
+                READ_ROWS, row_groups=[unit.row_group], columns=self.columns
+            )
+            self.open[key] = [batches, [], 0]  # batch iterator, batches read ahead, their first row
+        state = self.open[key]
+        batches, ahead, first = state
+        while first + sum(b.num_rows for b in ahead) < stop:
+            ahead.append(next(batches))
+        table = pa.Table.from_batches(ahead).slice(start - first, stop - start)
+        while ahead and first + ahead[0].num_rows <= stop:  # drop what is fully read
+            first += ahead.pop(0).num_rows
+        state[2] = first
+        if stop > unit.rows[-1]:
+            del self.open[key]  # done: let pyarrow free its buffers
+        return table
 
 
 class FrameStream(IterableDataset):
-    """Decoded samples of the frames in `index`, streamed row group by row group.
+    """Decoded samples of the frames in `index`, streamed from the shards.
+
+    Training (`shuffle`): each epoch shuffles the list of row groups (the same way on every
+    process), deals rows to DDP ranks in turn so every rank gets the same count within one,
+    and deals row groups to DataLoader workers. A worker keeps `open_units` row groups open and
+    reads READ_ROWS rows at a time from a randomly chosen one (`_interleave`), so its shuffle
+    buffer holds frames of dozens of episodes (towns, weathers, behaviours) rather than the one
+    or two a whole-row-group reader held; frames leave the buffer in random order. A batch
+    (one worker's consecutive samples) therefore mixes the dataset: measured in bench/train.py.
+
+    Evaluation (no `shuffle`): frames in index order per worker, whole row groups at a time.
 
     Args:
         index: the frames to stream (a slice of `scan`'s result).
         output_px: R, the side of the dense targets.
-        shuffle: shuffle row groups per epoch and frames through a buffer (training); without
-            it, frames come in index order per worker (evaluation).
+        shuffle: training order (above); without it, index order.
         seed: with the epoch (`set_epoch`), fixes every random choice, so a resumed run sees
             the same data order as an uninterrupted one.
         buffer_size: encoded frames a worker holds for shuffling.
+        open_units: row groups a worker reads from at once when shuffling.
         rank, world: this process's share under DDP.
+        single_frame_lidar: the LiDAR input is the current sweep only (see `_sample`); needs
+            the `lidar_ground_t` column.
+        min_lidar_points: detection targets keep agents with at least this many LiDAR returns
+            at t (training/targets.py).
     """
 
     def __init__(
@@ -214,16 +343,26 @@ class FrameStream(IterableDataset):
         buffer_size: int = 256,
         rank: int = 0,
         world: int = 1,
+        open_units: int = 64,
+        single_frame_lidar: bool = False,
+        min_lidar_points: int = MIN_LIDAR_POINTS,
     ):
         super().__init__()
         self.output_px, self.shuffle, self.seed = output_px, shuffle, seed
         self.buffer_size, self.rank, self.world = buffer_size, rank, world
+        self.open_units = open_units
+        self.single_frame_lidar, self.min_lidar_points = single_frame_lidar, min_lidar_points
+        self.columns = input_columns(index, single_frame_lidar)
         self.epoch = 0
         self.n_frames = len(index)
         self.units = [
             _Unit(path, int(rg), group.row.to_numpy())
             for (path, rg), group in index.groupby(["path", "row_group"], sort=False)
         ]
+        self._keys = {
+            (path, int(rg)): dict(zip(group.row.tolist(), zip(group.episode_id, group.frame)))
+            for (path, rg), group in index.groupby(["path", "row_group"], sort=False)
+        }
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
@@ -232,7 +371,7 @@ class FrameStream(IterableDataset):
         """Frames every rank gets at least (ranks differ by at most one)."""
         return self.n_frames // self.world
 
-    def _my_units(self) -> list[_Unit]:
+    def _my_units(self, worker: int = 0, n_workers: int = 1) -> list[_Unit]:
         """This rank's and this worker's rows for the current epoch."""
         order = np.arange(len(self.units))
         if self.shuffle:
@@ -243,31 +382,62 @@ class FrameStream(IterableDataset):
             keep = (offset + np.arange(len(rows))) % self.world == self.rank
             offset += len(rows)
             mine.append(_Unit(self.units[u].path, self.units[u].row_group, rows[keep]))
-        info = get_worker_info()
-        worker, n_workers = (info.id, info.num_workers) if info else (0, 1)
         return mine[worker::n_workers]
 
-    def __iter__(self):
-        info = get_worker_info()
-        worker = info.id if info else 0
+    def _order(self, read, worker: int, n_workers: int):
+        """Items in the order this worker yields them. `read(unit, rows, start, stop)` turns a
+        reading step (rows of `unit` within positions [start, stop)) into a list of items:
+        decodable rows for `__iter__`, keys for `keys`."""
+        units = self._my_units(worker, n_workers)
+        if not self.shuffle:
+            for unit in units:
+                if len(unit.rows):
+                    yield from read(unit, unit.rows, 0, int(unit.rows[-1]) + 1)
+            return
+        schedule = np.random.default_rng([self.seed, self.epoch, self.rank, worker, 2])
         rng = np.random.default_rng([self.seed, self.epoch, self.rank, worker, 1])
-        buffer: list[tuple[dict, int]] = []  # (row arrays of a row group, row)
-        for unit in self._my_units():
-            if not len(unit.rows):
-                continue
-            table = pq.ParquetFile(unit.path).read_row_group(unit.row_group, columns=list(COLUMNS))
-            rows = _row_arrays(table.take(unit.rows))
-            for i in range(len(unit.rows)):
-                if not self.shuffle:
-                    yield _sample(rows, i, self.output_px)
-                    continue
-                buffer.append((rows, i))
+        buffer: list = []
+        for k, start, stop in _interleave(units, self.open_units, schedule):
+            rows = units[k].rows
+            rows = rows[(rows >= start) & (rows < stop)]
+            for item in read(units[k], rows, start, stop):
+                buffer.append(item)
                 if len(buffer) >= self.buffer_size:
                     j = rng.integers(len(buffer))
                     buffer[j], buffer[-1] = buffer[-1], buffer[j]
-                    yield _sample(*buffer.pop(), self.output_px)
+                    yield buffer.pop()
         for j in rng.permutation(len(buffer)):
-            yield _sample(*buffer[j], self.output_px)
+            yield buffer[j]
+
+    def keys(self, worker: int = 0, n_workers: int = 1):
+        """(episode_id, frame) of the frames worker `worker` of `n_workers` yields, in that
+        order, without reading the shards: the same schedule as iterating (bench/train.py
+        measures batch composition with it)."""
+
+        def read(unit: _Unit, rows: np.ndarray, start: int, stop: int) -> list:
+            key = self._keys[(unit.path, unit.row_group)]
+            return [key[int(r)] for r in rows]
+
+        yield from self._order(read, worker, n_workers)
+
+    def __iter__(self):
+        info = get_worker_info()
+        worker, n_workers = (info.id, info.num_workers) if info else (0, 1)
+        readers = _Readers(self.columns)
+
+        def read(unit: _Unit, rows: np.ndarray, start: int, stop: int) -> list:
+            if self.shuffle:
+                table = readers.read(unit, start, stop).take(rows - start)
+            else:  # whole row groups, in order
+                shard = pq.ParquetFile(unit.path)
+                table = shard.read_row_group(unit.row_group, columns=self.columns).take(rows)
+            if not table.num_rows:
+                return []
+            arrays = _row_arrays(table)
+            return [(arrays, i) for i in range(table.num_rows)]
+
+        for arrays, i in self._order(read, worker, n_workers):
+            yield _sample(arrays, i, self.output_px, self.min_lidar_points)
 
 
 def make_loader(stream: FrameStream, batch_size: int, num_workers: int) -> DataLoader:

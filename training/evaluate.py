@@ -7,7 +7,8 @@
   four waypoints) and FDE (at +2 s), in metres; the same for a constant-velocity baseline
   (the ego keeps its speed straight ahead) on the same frames.
 - detection: average precision of the density map's peaks (training/targets.py) against the
-  agent centres, matched greedily by score within 0.5, 1, 2 and 4 m (nuScenes' centre-distance
+  centres of the agents the LiDAR sees (>= MIN_LIDAR_POINTS returns at t, the training targets'
+  rule), matched greedily by score within 0.5, 1, 2 and 4 m (nuScenes' centre-distance
   thresholds), 101-point interpolated, per timestep (t, t+0.5 s, t+1.0 s), and their mean.
 - BEV map: IoU per class and their mean, at the head's resolution R.
 - traffic rules: accuracy and F1 of "red light" and "stop sign" (probability >= 0.5).
@@ -92,7 +93,41 @@ def binary_scores(prob: np.ndarray, truth: np.ndarray) -> dict:
 
 @torch.no_grad()
 def evaluate(model, loader, device: torch.device) -> dict:
-    """Every metric of the module docstring for the heads `model` has."""
+    """Every metric of the module docstring for the heads `model` has (in eval mode: BatchNorm
+    uses its running statistics; the model's mode is restored after)."""
+    was_training = model.training
+    model.eval()
+    try:
+        return _evaluate(model, loader, device)
+    finally:
+        model.train(was_training)
+
+
+def headline(result: dict) -> dict[str, float | None]:
+    """The figures of an `evaluate` result that `train fit` logs per epoch, flat: ade_m, fde_m,
+    cv_ade_m, cv_fde_m, det_map (mean over timesteps), miou, iou_<class>, red_light_f1,
+    stop_sign_f1, weather_accuracy."""
+    p, cv = result["planning"], result["constant_velocity"]
+    out = {
+        "ade_m": p["ade_m"],
+        "fde_m": p["fde_m"],
+        "cv_ade_m": cv["ade_m"],
+        "cv_fde_m": cv["fde_m"],
+    }
+    if "detection" in result:
+        maps = [t["map"] for t in result["detection"].values() if t["map"] is not None]
+        out["det_map"] = float(np.mean(maps)) if maps else None
+    if "bev" in result:
+        out["miou"] = result["bev"]["miou"]
+        out.update({f"iou_{c}": v for c, v in result["bev"]["iou"].items()})
+    if "traffic" in result:
+        out.update({f"{k}_f1": v["f1"] for k, v in result["traffic"].items()})
+    if "weather" in result:
+        out["weather_accuracy"] = result["weather"]["accuracy"]
+    return out
+
+
+def _evaluate(model, loader, device: torch.device) -> dict:
     heads = model.cfg.heads
     R = model.cfg.output_px
     times = torch.tensor(WAYPOINT_TIMES_S)
@@ -222,7 +257,9 @@ def run(args) -> int:
         index = index[index.episode_id.isin(state.get("val_episodes", []))]
         if index.empty:
             raise UserError(f"{args.shards}: none of the checkpoint's validation episodes")
-    stream = data.FrameStream(index, model.cfg.output_px)
+    stream = data.FrameStream(
+        index, model.cfg.output_px, single_frame_lidar=model.cfg.single_frame_lidar
+    )
     result = evaluate(model, data.make_loader(stream, args.batch_size, args.workers), device)
     result = {
         "checkpoint": str(args.ckpt),

@@ -6,10 +6,14 @@
     train fit --shards data/ --out runs/paper --resume                          # continue
 
 Per epoch the loop streams the training episodes (training/data.py), steps AdamW with a
-warm-up + cosine learning rate, measures the loss terms on the held-out episodes, appends a
-line to OUT/metrics.jsonl (and to TensorBoard when it is installed) and writes OUT/last.pt
-atomically. A resumed run takes weights, optimizer moments, step, epoch and RNG states from
-last.pt, and the data order is a function of (seed, epoch), so it continues exactly.
+warm-up + cosine learning rate, measures the loss terms and `train eval`'s metrics on the
+held-out episodes, appends a line to OUT/metrics.jsonl and writes OUT/last.pt atomically.
+Every LOG_EVERY steps it appends the mean of every loss term over those steps, the learning
+rate and samples/s to OUT/steps.jsonl. With TensorBoard installed (the `tensorboard` extra)
+the same scalars go to OUT/tensorboard/; `train curves --run OUT` draws them to a PNG without
+it. A resumed run takes weights, optimizer moments, step, epoch and RNG states from last.pt,
+and the data order is a function of (seed, epoch), so it continues exactly (the logs are cut
+back to the checkpoint's step first).
 """
 
 from __future__ import annotations
@@ -35,7 +39,10 @@ from training.losses import compute_losses, loss_terms
 from training.model import IIDSU, INPUTS
 
 CHECKPOINT = "last.pt"
-METRICS = "metrics.jsonl"
+METRICS = "metrics.jsonl"  # one line per epoch
+STEPS = "steps.jsonl"  # one line per LOG_EVERY optimizer steps
+TENSORBOARD = "tensorboard"
+LOG_EVERY = 10  # steps; each log reads the loss from the device (a GPU sync): not every step
 
 
 def lr_at(step: int, total_steps: int, cfg: TrainConfig) -> float:
@@ -162,13 +169,43 @@ def _set_rng_state(state: dict, device: torch.device) -> None:
         torch.cuda.set_rng_state(state["cuda"], device)
 
 
-def _tensorboard(out: Path):
-    """A SummaryWriter when TensorBoard is installed, else None."""
+def _tensorboard(out: Path, step: int):
+    """A SummaryWriter when TensorBoard is installed, else None. `purge_step` drops events a
+    crashed run logged after its checkpoint, so a resumed run's curves do not double back."""
     try:
         from torch.utils.tensorboard import SummaryWriter
     except ImportError:
         return None
-    return SummaryWriter(str(out / "tensorboard"))
+    return SummaryWriter(str(out / TENSORBOARD), purge_step=step or None)
+
+
+def _cut_log(path: Path, step: int) -> None:
+    """Keep the lines of a JSON-lines log up to optimizer step `step` (what a resumed run
+    redoes is logged again)."""
+    if path.exists():
+        lines = [ln for ln in path.read_text().splitlines() if json.loads(ln)["step"] <= step]
+        path.write_text("".join(ln + "\n" for ln in lines))
+
+
+def scalars(metrics: dict) -> dict[str, float]:
+    """An epoch's metrics.jsonl line as flat TensorBoard tags: train/<term>, val/<term> (loss
+    terms), val_metrics/<name> (`train eval`'s, see `evaluate.headline`), lr, samples_per_s."""
+    flat = {f"{split}/{k}": v for split in ("train", "val") for k, v in metrics[split].items()}
+    flat.update({f"val_metrics/{k}": v for k, v in metrics.get("val_metrics", {}).items()})
+    flat.update(lr=metrics["lr"], samples_per_s=metrics["samples_per_s"])
+    return {k: v for k, v in flat.items() if v is not None}
+
+
+def _log_step(out: Path, writer, line: dict) -> None:
+    """One steps.jsonl line, and its scalars to TensorBoard (tags step/train/<term>, step/lr,
+    step/samples_per_s)."""
+    with open(out / STEPS, "a") as f:
+        f.write(json.dumps(line) + "\n")
+    if writer is not None:
+        for k, v in line["train"].items():
+            writer.add_scalar(f"step/train/{k}", v, line["step"])
+        writer.add_scalar("step/lr", line["lr"], line["step"])
+        writer.add_scalar("step/samples_per_s", line["samples_per_s"], line["step"])
 
 
 def fit(model_cfg: ModelConfig, cfg: TrainConfig, resume: bool = False, device: str = "auto"):
@@ -195,11 +232,17 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
         shuffle=True,
         seed=cfg.seed,
         buffer_size=cfg.shuffle_buffer,
+        open_units=cfg.open_row_groups,
         rank=proc.rank,
         world=proc.world,
+        single_frame_lidar=model_cfg.single_frame_lidar,
     )
     val_stream = data.FrameStream(
-        index[is_val], model_cfg.output_px, rank=proc.rank, world=proc.world
+        index[is_val],
+        model_cfg.output_px,
+        rank=proc.rank,
+        world=proc.world,
+        single_frame_lidar=model_cfg.single_frame_lidar,
     )
     if stream.frames_per_rank() == 0:
         raise UserError(f"{cfg.shards}: no training frames for {proc.world} process(es)")
@@ -237,9 +280,12 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
     writer = None
     if proc.master:
         out.mkdir(parents=True, exist_ok=True)
-        if state is None:  # a fresh run replaces an old one's log
-            (out / METRICS).write_text("")
-        writer = _tensorboard(out)
+        for log in (METRICS, STEPS):
+            if state is None:  # a fresh run replaces an old one's logs
+                (out / log).write_text("")
+            else:
+                _cut_log(out / log, step)
+        writer = _tensorboard(out, step)
         print(
             f"train fit: {len(index)} frames, {int((~is_val).sum())} for training and "
             f"{int(is_val.sum())} held out ({index.episode_id[is_val].nunique()} of "
@@ -253,7 +299,9 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
         stream.set_epoch(epoch)
         model.train()
         sums: dict[str, torch.Tensor] = {}
+        window: dict[str, torch.Tensor] = {}  # sums over the steps since the last log line
         seen, t0 = 0, time.perf_counter()
+        t_log, seen_log = t0, 0
         bar = tqdm(
             total=steps_per_epoch,
             desc=f"epoch {epoch + 1}/{cfg.epochs}",
@@ -277,10 +325,22 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
             seen += n
             for k, v in terms.items():  # summed on the device: no sync per step
                 sums[k] = sums.get(k, 0.0) + v.detach() * n
+                window[k] = window.get(k, 0.0) + v.detach() * n
             bar.update()
-            if i % 10 == 0 or i == steps_per_epoch - 1:  # .item() waits for the GPU: not often
-                rate = seen * proc.world / (time.perf_counter() - t0)
-                bar.set_postfix(loss=f"{terms['total'].item():.3f}", samples_s=f"{rate:.1f}")
+            if step % LOG_EVERY == 0 or i == steps_per_epoch - 1:  # .item() syncs: not often
+                now = time.perf_counter()
+                rate = (seen - seen_log) * proc.world / (now - t_log)
+                line = {
+                    "step": step,
+                    "epoch": round(epoch + (i + 1) / steps_per_epoch, 4),  # fractional
+                    "lr": lr,
+                    "samples_per_s": round(rate, 2),
+                    "train": {k: v.item() / (seen - seen_log) for k, v in window.items()},
+                }
+                bar.set_postfix(loss=f"{line['train']['total']:.3f}", samples_s=f"{rate:.1f}")
+                if proc.master:
+                    _log_step(out, writer, line)
+                window, t_log, seen_log = {}, now, seen
         bar.close()
         elapsed = time.perf_counter() - t0
         sums["n"] = torch.tensor(float(seen), device=proc.device)
@@ -295,6 +355,11 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
             "train": {k: v / n_train for k, v in train.items()},
             "val": estimate_loss(raw_model, val_loader, cfg, proc),
         }
+        if proc.master and cfg.val_metrics and len(val_stream.units):
+            from training.evaluate import evaluate, headline  # evaluate imports this module
+
+            # On this rank's share of the held-out frames (all of them without DDP).
+            metrics["val_metrics"] = headline(evaluate(raw_model, val_loader, proc.device))
         rngs = [None] * proc.world
         if proc.world > 1:
             dist.all_gather_object(rngs, _rng_state(proc.device))
@@ -316,10 +381,8 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
             with open(out / METRICS, "a") as f:
                 f.write(json.dumps(metrics) + "\n")
             if writer is not None:
-                for split_name in ("train", "val"):
-                    for k, v in metrics[split_name].items():
-                        writer.add_scalar(f"{split_name}/{k}", v, epoch + 1)
-                writer.add_scalar("lr", lr, epoch + 1)
+                for tag, v in scalars(metrics).items():  # per epoch, at its last step
+                    writer.add_scalar(f"epoch/{tag}", v, step)
                 writer.flush()
             val = metrics["val"].get("total")
             print(

@@ -137,11 +137,10 @@ class ECA(nn.Module):
 class IIDSU(nn.Module):
     """The whole model. `forward` returns a dict with one raw output per head in `cfg.heads`.
 
-    LiDAR input: the shards' ch0 (at-ground hits summed over t, t-1, t-2) and ch1..3
-    (above-ground hits at t, t-1, t-2). `single_frame_lidar` keeps ch0 and ch1. The shards do
-    not store the current sweep's ground hits apart, so this ablation's ground channel still
-    sums three sweeps; ground returns are the static scene, so what it removes is the past
-    above-ground (moving) evidence, which is what the paper's "multi-frame" row is about.
+    LiDAR input (Sec. III-A): the shards' ch0 (at-ground hits summed over t, t-1, t-2) and
+    ch1..3 (above-ground hits at t, t-1, t-2). With `single_frame_lidar` (Table III's "No
+    Multi-frame LiDAR") it is the current sweep only: the `lidar_ground_t` column (ground hits
+    at t) and ch1, as the loader builds it (training/data.py `_sample`).
     """
 
     def __init__(self, cfg: ModelConfig):
@@ -149,7 +148,7 @@ class IIDSU(nn.Module):
         self.cfg = cfg
         self.image_encoder = ConvNeXt(3, cfg.depths, cfg.dims, cfg.drop_path, cfg.layer_scale_init)
         self.lidar_encoder = ConvNeXt(
-            len(cfg.lidar_channels), cfg.depths, cfg.dims, cfg.drop_path, cfg.layer_scale_init
+            cfg.lidar_in_channels, cfg.depths, cfg.dims, cfg.drop_path, cfg.layer_scale_init
         )
         self.fusion = nn.ModuleList(
             TransFuserLayer(d, cfg.fusion_tokens, cfg.fusion_blocks, cfg.fusion_heads)
@@ -175,13 +174,19 @@ class IIDSU(nn.Module):
 
         Args:
             image: (B, 3, H, W) uint8 RGB camera crop.
-            lidar: (B, 4, H, W) uint8 LiDAR BEV counts, ch0..ch3 of the shards.
+            lidar: (B, 4, H, W) uint8 LiDAR BEV counts, ch0..ch3 of the shards; (B, 2, H, W)
+                (ground and above-ground hits at t) for a single-frame model.
             speed: (B,) float32 ego speed, m/s.
         Returns:
             (B, feature_dim, H / 32, W / 32) float.
         """
         x_img = (image.float() / 255.0 - self.mean) / self.std
-        lid = lidar[:, list(self.cfg.lidar_channels)].float()
+        if lidar.shape[1] != self.cfg.lidar_in_channels:  # e.g. 4 summed channels, 2 wanted
+            raise ValueError(
+                f"LiDAR input has {lidar.shape[1]} channels; this model takes "
+                f"{self.cfg.lidar_in_channels} (single_frame_lidar={self.cfg.single_frame_lidar})"
+            )
+        lid = lidar.float()
         x_lid = lid.clamp(max=self.cfg.lidar_clip_count) / self.cfg.lidar_clip_count
         x_img = self.image_encoder.stem(x_img)
         x_lid = self.lidar_encoder.stem(x_lid)

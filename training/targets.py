@@ -16,6 +16,11 @@ output pixel is 32 / R m. For each timestep t (t, t+0.5 s, t+1.0 s), following C
 
 All agent classes share one heatmap (the paper's density map has one channel per timestep).
 Agents beyond MAX_OBJECTS in a timestep are dropped, nearest to the ego kept.
+
+Only agents the LiDAR sees are targets (`visible_boxes`), as in TransFuser++ (Jaeger et al.
+2023, carla_garage `num_lidar_hits_for_detection`): an agent counts, at every timestep, when its
+box at t has at least MIN_LIDAR_POINTS returns. The same targets feed the loss and `train
+eval`'s AP, so the model is neither trained nor scored on agents hidden behind others.
 """
 
 from __future__ import annotations
@@ -32,6 +37,23 @@ N_T = len(BOX_TIMESTEPS)
 N_REG = DENSITY_CHANNELS - 1  # dx, dy, log w, log l, sin, cos
 MAX_OBJECTS = 128  # per timestep (CenterNet's max_objs)
 GRID_M = BEV_SIZE_PX / BEV_PX_PER_M  # 32 m: the side of the (square) BEV area
+MIN_LIDAR_POINTS = 8
+"""LiDAR returns at t an agent needs to be a detection target: TransFuser++'s first release
+keeps boxes with more than `num_lidar_hits_for_detection = 7` hits."""
+
+
+def visible_boxes(boxes: dict[str, np.ndarray], min_lidar_points: int) -> dict[str, np.ndarray]:
+    """The boxes of one frame whose agent has >= `min_lidar_points` LiDAR returns at t.
+
+    `boxes` holds equal-length arrays with at least track_id, t and lidar_points (the shards'
+    box fields); future boxes (t > 0, whose lidar_points is 0 by the schema) follow their
+    agent's box at t, and an agent without a box at t is dropped.
+    """
+    if min_lidar_points <= 0 or not len(boxes["t"]):
+        return boxes
+    seen = boxes["track_id"][(boxes["t"] == 0) & (boxes["lidar_points"] >= min_lidar_points)]
+    keep = np.isin(boxes["track_id"], seen)
+    return {k: v[keep] for k, v in boxes.items()}
 
 
 def px_per_m(output_px: int) -> float:
