@@ -18,6 +18,7 @@ encoded rows before decoding them (OpenCV, via `schemas.codecs`) and rendering t
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -137,6 +138,29 @@ def _row_arrays(table: pa.Table) -> dict:
     return out
 
 
+def model_inputs(image: bytes, lidar_bev: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """The camera and LiDAR the model reads, from their shard encodings (schemas.codecs):
+    image (3, 256, 256) uint8 RGB and lidar (4, 256, 256) uint8 counts ch0..ch3. Closed-loop
+    driving (drive/) feeds the model through this too, so it sees what it was trained on."""
+    return (
+        np.ascontiguousarray(codecs.decode_image(image).transpose(2, 0, 1)),
+        np.ascontiguousarray(codecs.decode_lidar_bev(lidar_bev).transpose(2, 0, 1)),
+    )
+
+
+def sensor_config(index: pd.DataFrame) -> dict | None:
+    """The sensor configuration the frames of `index` were recorded with (the shards'
+    iidsu.config_json), None if they carry none; UserError if the shards disagree."""
+    configs = {
+        (pq.read_schema(f).metadata or {}).get(schemas.META_CONFIG_JSON.encode())
+        for f in index.path.unique()
+    }
+    if len(configs) > 1:
+        raise UserError("the shards were recorded with different sensor configurations")
+    (config,) = configs
+    return json.loads(config) if config else None
+
+
 def _sample(rows: dict, i: int, output_px: int) -> dict:
     """Decode row `i` of `_row_arrays` output into one training sample (numpy arrays).
 
@@ -152,11 +176,10 @@ def _sample(rows: dict, i: int, output_px: int) -> dict:
     bev = codecs.decode_bev_semantic(rows["bev_semantic"][i])
     if bev.shape[0] != output_px:  # nearest: class ids must not blend (thins lane markings)
         bev = cv2.resize(bev, (output_px, output_px), interpolation=cv2.INTER_NEAREST)
+    image, lidar = model_inputs(rows["image"][i], rows["lidar_bev"][i])
     return {
-        "image": np.ascontiguousarray(codecs.decode_image(rows["image"][i]).transpose(2, 0, 1)),
-        "lidar": np.ascontiguousarray(
-            codecs.decode_lidar_bev(rows["lidar_bev"][i]).transpose(2, 0, 1)
-        ),
+        "image": image,
+        "lidar": lidar,
         "speed": np.float32(rows["ego_speed"][i]),
         "target_point": rows["target_point"][i].astype(np.float32),
         "waypoints": rows["waypoints"][i].astype(np.float32),
