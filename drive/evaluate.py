@@ -73,7 +73,7 @@ def drive_route(task: Task) -> dict:
     net = resolve_net(route, Path(task.net_override) if task.net_override else None)
     geom = route_geometry(net, route.edges)
     static = load_static_scene(net)
-    layout = Layout(static)
+    layout = Layout.from_static(static)
     sensor_cfg = SensorConfig()
     model = ModelPolicy(spec, sensor_cfg.to_dict()) if spec.kind == "ckpt" else None
     need_sensors = model is not None or task.record

@@ -44,26 +44,36 @@ def boxes_overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 class Layout:
-    """Road, kerb and obstacle geometry of one town (module docstring)."""
+    """Road, kerb and obstacle geometry of one town (module docstring).
 
-    def __init__(self, static: StaticScene):
+    Args:
+        road, kerb, obstacles: shapely polygons, world frame (see `from_static`).
+    """
+
+    def __init__(self, road: list, kerb: list, obstacles: list):
         import shapely
 
-        polys = [
+        self._road = shapely.STRtree([shapely.make_valid(p) for p in road])
+        self._kerb = shapely.STRtree([shapely.make_valid(p) for p in kerb])
+        self._obstacles = shapely.STRtree(obstacles) if len(obstacles) else None
+
+    @staticmethod
+    def from_static(static: StaticScene) -> Layout:
+        """The layout of the sensors' static scene."""
+        import shapely
+
+        rings = [
             static.bev_xy_m[static.bev_start[p] : static.bev_start[p + 1]].astype(np.float64)
             for p in range(len(static.bev_class))
         ]
-        drivable = [shapely.Polygon(r) for r, c in zip(polys, static.bev_class) if c == 1]
-        kerb = [shapely.Polygon(r) for r, c in zip(polys, static.bev_class) if c == 0]
-        self._road = shapely.STRtree([shapely.make_valid(p) for p in drivable])
-        self._kerb = shapely.STRtree([shapely.make_valid(p) for p in kerb])
-        tri = static.triangles_m
+        road = [shapely.Polygon(r) for r, c in zip(rings, static.bev_class) if c == 1]
+        kerb = [shapely.Polygon(r) for r, c in zip(rings, static.bev_class) if c == 0]
         mat = static.material
         up = static.normals[:, 2] > 0.5
         trunk = (mat == Material.VEGETATION) & np.all(static.colour_rgb == TRUNK_RGB, axis=1)
         solid = np.isin(mat, (Material.BUILDING, Material.POLE, Material.SIGN)) | trunk
-        foot = tri[up & solid][:, :, :2].astype(np.float64)
-        self._obstacles = shapely.STRtree(shapely.polygons(foot)) if len(foot) else None
+        foot = static.triangles_m[up & solid][:, :, :2].astype(np.float64)
+        return Layout(road, kerb, list(shapely.polygons(foot)) if len(foot) else [])
 
     def on_road(self, x_m: float, y_m: float) -> bool:
         """The point lies on the drivable area (not on a sidewalk or off the network)."""
