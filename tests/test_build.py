@@ -19,14 +19,15 @@ import pyarrow.dataset as ds
 import pytest
 
 import schemas
-from datagen import build, validate
+from datagen import build, plan, validate
 from datagen.errors import UserError
+from datagen.manifest import LOCK, MANIFEST, BuildLock
 from tests.synthetic import synthetic_table
 
 ROOT = Path(__file__).resolve().parents[1]
 FAKE_TOWNS = (
-    build.Town("alpha", "/nonexistent/alpha.net.xml", "a" * 64, False),
-    build.Town("beta", "/nonexistent/beta.net.xml", "b" * 64, False),
+    plan.Town("alpha", "/nonexistent/alpha.net.xml", "a" * 64, False),
+    plan.Town("beta", "/nonexistent/beta.net.xml", "b" * 64, False),
 )
 
 
@@ -65,8 +66,8 @@ def failing_runner(spec, sensors, progress):
     return fake_runner(spec, sensors, progress)
 
 
-def fake_config(frames=96, seed=7, episode_seconds=8.0) -> build.BuildConfig:
-    return build.BuildConfig(
+def fake_config(frames=96, seed=7, episode_seconds=8.0) -> plan.BuildConfig:
+    return plan.BuildConfig(
         towns=FAKE_TOWNS, frames=frames, seed=seed, episode_seconds=episode_seconds, sensors={}
     )
 
@@ -87,7 +88,7 @@ def fake_build_main(out: str, workers: str) -> None:
 
 def _content(out: Path) -> dict:
     """Everything that should be identical between two builds of the same arguments."""
-    manifest = json.loads((out / build.MANIFEST).read_text())
+    manifest = json.loads((out / MANIFEST).read_text())
     manifest.pop("run")
     files = {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*.parquet"))}
     return {"manifest": manifest, "files": files}
@@ -95,8 +96,8 @@ def _content(out: Path) -> dict:
 
 def test_plan_splits_the_budget_across_towns_and_weathers_deterministically():
     cfg = fake_config(frames=1001, episode_seconds=60.0)  # 120 frames per episode
-    plans = build.plan(cfg, {})
-    assert plans == build.plan(cfg, {})
+    plans = plan.plan(cfg, {})
+    assert plans == plan.plan(cfg, {})
     episodes = [e for p in plans.values() for e in p.episodes]
     assert sum(e.n_frames for e in episodes) == 1001
     assert max(e.n_frames for e in episodes) <= 120
@@ -112,16 +113,16 @@ def test_plan_splits_the_budget_across_towns_and_weathers_deterministically():
     assert sorted(per_cell.values()) == [125] * 7 + [126]
     assert [e.episode_id for e in plans["alpha"].episodes[:2]] == ["alpha-7-0000", "alpha-7-0001"]
     # the same town and index give the same episode whatever the other towns are
-    alone = build.plan(build.BuildConfig(FAKE_TOWNS[:1], 501, 7, 60.0, sensors={}), {})
+    alone = plan.plan(plan.BuildConfig(FAKE_TOWNS[:1], 501, 7, 60.0, sensors={}), {})
     assert alone["alpha"].episodes == plans["alpha"].episodes
 
 
 def test_weather_mix_apportions_frames():
-    cfg = build.BuildConfig(
+    cfg = plan.BuildConfig(
         FAKE_TOWNS[:1], 100, 0, 600.0, build.parse_weather_mix("sunny=3,foggy=1"), sensors={}
     )
     frames = {}
-    for e in build.plan(cfg, {})["alpha"].episodes:
+    for e in plan.plan(cfg, {})["alpha"].episodes:
         frames[e.weather] = frames.get(e.weather, 0) + e.n_frames
     assert frames == {"sunny": 75, "foggy": 25}
     with pytest.raises(UserError, match="unknown weather 'snowy'"):
@@ -134,25 +135,25 @@ def _finish(plan, rows_of):
 
 def test_episodes_that_end_early_are_topped_up_by_a_further_round():
     cfg = fake_config(frames=40, episode_seconds=5.0)  # 10 frames per episode, 20 per town
-    quota = build.town_quotas(cfg)["alpha"]
-    first = build.plan_town(cfg, "alpha", quota, {})
+    quota = plan.town_quotas(cfg)["alpha"]
+    first = plan.plan_town(cfg, "alpha", quota, {})
     assert not first.complete and len(first.episodes) == 4
     done = _finish(first, lambda e: e.n_frames - 3 if e.weather == "rainy" else e.n_frames)
-    second = build.plan_town(cfg, "alpha", quota, done)
+    second = plan.plan_town(cfg, "alpha", quota, done)
     extra = second.episodes[len(first.episodes) :]
     assert [(e.weather, e.n_frames, e.round) for e in extra] == [("rainy", 3, 1)]
     assert extra[0].episode_id == "alpha-7-0004"
     done.update({e.episode_id: {**e.key(), "rows": e.n_frames} for e in extra})
-    third = build.plan_town(cfg, "alpha", quota, done)
+    third = plan.plan_town(cfg, "alpha", quota, done)
     assert third.complete and third.episodes == second.episodes and not third.shortfall
 
 
 def test_a_weather_whose_round_delivers_nothing_is_given_up():
     cfg = fake_config(frames=40, episode_seconds=5.0)
-    quota = build.town_quotas(cfg)["alpha"]
-    p = build.plan_town(cfg, "alpha", quota, {})
+    quota = plan.town_quotas(cfg)["alpha"]
+    p = plan.plan_town(cfg, "alpha", quota, {})
     done = _finish(p, lambda e: 0 if e.weather == "foggy" else e.n_frames)
-    p = build.plan_town(cfg, "alpha", quota, done)
+    p = plan.plan_town(cfg, "alpha", quota, done)
     assert p.complete and p.shortfall == {"foggy": 5}
 
 
@@ -186,7 +187,7 @@ def test_rerun_keeps_finished_episodes_and_adopts_unrecorded_shards(tmp_path):
     fake_build(tmp_path / "ref")
     out = tmp_path / "out"
     fake_build(out)
-    manifest = json.loads((out / build.MANIFEST).read_text())
+    manifest = json.loads((out / MANIFEST).read_text())
     # As if killed: one shard renamed but not yet recorded, one not written at all, one
     # temporary left, the manifest still "building".
     recorded = [e for e in manifest["episodes"] if e["rows"]]
@@ -195,7 +196,7 @@ def test_rerun_keeps_finished_episodes_and_adopts_unrecorded_shards(tmp_path):
     (out / recorded[2]["file"]).write_bytes(b"PAR1 damaged")  # e.g. a disk error
     (out / "alpha" / "_alpha-7-0009.parquet.99.tmp").write_bytes(b"half")
     manifest["status"] = "building"
-    (out / build.MANIFEST).write_text(json.dumps(manifest))
+    (out / MANIFEST).write_text(json.dumps(manifest))
     report = fake_build(out)
     # only the missing and the damaged episodes were redone
     assert report.new_frames == recorded[1]["rows"] + recorded[2]["rows"]
@@ -222,18 +223,18 @@ def test_a_failing_episode_stops_the_build_and_keeps_the_rest(tmp_path, capsys):
     with pytest.raises(UserError, match=r"episode alpha-7-0003 failed \(ValueError: the sim"):
         build.build(fake_config(), tmp_path, workers=1, runner=failing_runner, progress_bar=False)
     assert "Traceback" in capsys.readouterr().err  # the worker's, for the bug report
-    manifest = json.loads((tmp_path / build.MANIFEST).read_text())
+    manifest = json.loads((tmp_path / MANIFEST).read_text())
     done = [e["episode_id"] for e in manifest["episodes"] if e["status"] == "done"]
     assert "alpha-7-0000" in done and "alpha-7-0003" not in done
     assert fake_build(tmp_path).manifest["status"] == "complete"  # resumes once fixed
 
 
 def test_two_builds_never_write_one_directory(tmp_path):
-    with build.BuildLock(tmp_path):
+    with BuildLock(tmp_path):
         with pytest.raises(UserError, match="another datagen build is writing"):
             fake_build(tmp_path)
     assert fake_build(tmp_path).manifest["status"] == "complete"
-    assert not (tmp_path / build.LOCK).exists()
+    assert not (tmp_path / LOCK).exists()
 
 
 def test_foreign_parquet_files_are_never_touched(tmp_path):
@@ -332,7 +333,7 @@ def small(tmp_path_factory) -> Path:
 
 
 def test_small_build_is_read_by_pandas_pyarrow_and_validate(small):
-    manifest = json.loads((small / build.MANIFEST).read_text())
+    manifest = json.loads((small / MANIFEST).read_text())
     stats = manifest["statistics"]
     assert manifest["status"] == "complete" and stats["frames"] == 160
     df = pd.read_parquet(small)
@@ -410,7 +411,7 @@ def test_a_user_network_is_a_town_named_by_its_stem(tmp_path):
     net = Path(sumo.SUMO_HOME) / "tools" / "game" / "fokr_bs_demo" / "fokr_bs.net.xml.gz"
     out = tmp_path / "data"
     datagen("build", "--net", net, "--frames", "12", "--workers", "2", "--out", out)
-    manifest = json.loads((out / build.MANIFEST).read_text())
+    manifest = json.loads((out / MANIFEST).read_text())
     assert [t["name"] for t in manifest["towns"]] == ["fokr_bs"]
     assert manifest["towns"][0]["net_path"] == str(net)
     df = pd.read_parquet(out, columns=["town", "episode_id"])

@@ -9,7 +9,8 @@ import pyarrow.parquet as pq
 import pytest
 
 import schemas
-from datagen import build, shards, validate
+from datagen import shards, validate
+from datagen.manifest import MANIFEST
 from tests.test_build import fake_build
 
 
@@ -90,10 +91,10 @@ def test_another_schema_version_is_reported(copy, capsys):
 
 
 def test_manifest_row_counts_and_listing_are_checked(copy, capsys):
-    manifest = json.loads((copy / build.MANIFEST).read_text())
+    manifest = json.loads((copy / MANIFEST).read_text())
     first = next(e for e in manifest["episodes"] if e["rows"])
     first["rows"] += 1
-    (copy / build.MANIFEST).write_text(json.dumps(manifest))
+    (copy / MANIFEST).write_text(json.dumps(manifest))
     stray = copy / "alpha" / "alpha-9-0000.parquet"
     shutil.copy(copy / first["file"], stray)
     status, _, err = run(copy, capsys)
@@ -107,9 +108,9 @@ def test_manifest_row_counts_and_listing_are_checked(copy, capsys):
 
 
 def test_an_incomplete_build_is_reported(copy, capsys):
-    manifest = json.loads((copy / build.MANIFEST).read_text())
+    manifest = json.loads((copy / MANIFEST).read_text())
     manifest["status"] = "building"
-    (copy / build.MANIFEST).write_text(json.dumps(manifest))
+    (copy / MANIFEST).write_text(json.dumps(manifest))
     status, _, err = run(copy, capsys)
     assert status == 1 and "the build is not complete" in err[0]
 
