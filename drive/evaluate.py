@@ -57,8 +57,18 @@ def _write_json(path: Path, doc: dict) -> None:
     os.replace(tmp, path)
 
 
-def drive_route(task: Task) -> dict:
-    """Drive one route; returns (and writes) its result document."""
+def drive_route(
+    task: Task,
+    planner: Callable[[object], np.ndarray] | None = None,
+    on_start: Callable[[], None] | None = None,
+    world_options: dict | None = None,
+) -> dict:
+    """Drive one route; returns (and writes) its result document.
+
+    For scripted tests: `planner(frame) -> (4, 2)` ego-frame waypoints replaces the policy,
+    `on_start()` runs once the world has started (e.g. to park a car with libsumo), and
+    `world_options` overrides WorldConfig fields (n_vehicles, n_pedestrians, warmup_s).
+    """
     from datagen.episode import SensorConfig, Sensors, episode_rng
     from datagen.scene import load_static_scene
     from drive.geometry import route_geometry
@@ -90,7 +100,10 @@ def drive_route(task: Task) -> dict:
     tracker = InfractionTracker(geom, layout)
     timing = {"setup": time.perf_counter() - t0, "sim": 0.0, "sensors": 0.0, "policy": 0.0}
     timing.update(judge=0.0)
-    with DrivenWorld(net, route, external=not spec.privileged) as world:
+    external = planner is not None or not spec.privileged
+    with DrivenWorld(net, route, external=external, **(world_options or {})) as world:
+        if on_start is not None:
+            on_start()
         frame = world.state()
         vehicle = VehicleState(frame.ego.pose, frame.ego.speed_mps)
         controller = Controller()
@@ -119,7 +132,9 @@ def drive_route(task: Task) -> dict:
                     lidar_png = codecs.encode_lidar_bev(bev)
                 timing["sensors"] += time.perf_counter() - t
                 t = time.perf_counter()
-                if model is not None:
+                if planner is not None:
+                    waypoints = planner(frame)
+                elif model is not None:
                     waypoints = model.plan(frame, image_jpeg, lidar_png)
                 elif spec.kind == "constant":
                     waypoints = constant_waypoints()

@@ -126,8 +126,9 @@ def load_routes(path: Path) -> tuple[str, list[Route]]:
     return str(doc.get("name", path.stem)), routes
 
 
-def _pick_route(net, edges, rng, length_m, junctions, geometry_of):
-    """One random car route with its length and junction count in range (or None)."""
+def _pick_route(net, edges, rng, length_m, junctions, geometry_of, taken):
+    """One random car route with its length and junction count in range, not in `taken`
+    (or None)."""
     xy = np.array([e.getShape()[len(e.getShape()) // 2] for e in edges])
     lo, hi = length_m
     for _ in range(400):
@@ -141,6 +142,8 @@ def _pick_route(net, edges, rng, length_m, junctions, geometry_of):
         if not path or len(path) < 2:
             continue
         ids = tuple(e.getID() for e in path)
+        if ids in taken:
+            continue
         try:
             geom = geometry_of(ids)
         except ValueError:
@@ -186,7 +189,13 @@ def generate(
     ):
         for i in range(n):
             found = _pick_route(
-                net, edges, rng, length, junc, lambda ids: route_geometry(net_path, ids)
+                net,
+                edges,
+                rng,
+                length,
+                junc,
+                lambda ids: route_geometry(net_path, ids),
+                {r.edges for r in out},
             )
             if found is None:
                 raise UserError(

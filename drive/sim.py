@@ -16,7 +16,7 @@ from drive.routes import Route
 class DrivenWorld:
     """Context manager: `state()`, `place_ego(pose, speed)` (external only), `step()`."""
 
-    def __init__(self, net_path: Path, route: Route, external: bool):
+    def __init__(self, net_path: Path, route: Route, external: bool, **options):
         from datagen.world import World, WorldConfig
 
         self.external = external
@@ -28,6 +28,7 @@ class DrivenWorld:
                 behaviour=route.behaviour,
                 reroute=False,
                 ego_route=tuple(route.edges),
+                **options,
             )
         )
         if external:
