@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
             return routes.run(args)
         return evaluate.run(args)
     except (UserError, TrainError) as e:
-        print(f"drive: error: {e}", file=sys.stderr)
+        print(f"drive: error: {str(e).splitlines()[0] if str(e) else e!r}", file=sys.stderr)
         return 2
 
 

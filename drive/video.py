@@ -57,7 +57,11 @@ class Recorder:
                 cv2.circle(bev, (int(c), int(r)), 3, (60, 90, 255), -1)
         ego_r, ego_c = ego_to_bev_px(np.array([0.0]), np.array([0.0]))
         cv2.rectangle(
-            bev, (int(ego_c[0]) - 7, int(ego_r[0]) - 19), (int(ego_c[0]) + 7, int(ego_r[0])), (220, 40, 40), 2
+            bev,
+            (int(ego_c[0]) - 7, int(ego_r[0]) - 19),
+            (int(ego_c[0]) + 7, int(ego_r[0])),
+            (220, 40, 40),
+            2,
         )
         canvas = np.zeros((SIDE_PX + 40, 2 * SIDE_PX, 3), np.uint8)
         canvas[:SIDE_PX, :SIDE_PX] = cam
