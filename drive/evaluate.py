@@ -62,12 +62,14 @@ def drive_route(
     planner: Callable[[object], np.ndarray] | None = None,
     on_start: Callable[[], None] | None = None,
     world_options: dict | None = None,
+    max_sim_s: float | None = None,
 ) -> dict:
     """Drive one route; returns (and writes) its result document.
 
     For scripted tests: `planner(frame) -> (4, 2)` ego-frame waypoints replaces the policy,
     `on_start()` runs once the world has started (e.g. to park a car with libsumo), and
     `world_options` overrides WorldConfig fields (n_vehicles, n_pedestrians, warmup_s).
+    `max_sim_s` stops the route after that much simulated time (bench/drive.py), unscored.
     """
     from datagen.episode import SensorConfig, Sensors, episode_rng
     from datagen.scene import load_static_scene
@@ -117,6 +119,8 @@ def drive_route(
             tracker.step(frame, STEP_S)
             timing["judge"] += time.perf_counter() - t
             if tracker.ended is not None or world.ended is not None:
+                break
+            if max_sim_s is not None and frame.time_s - tracker.start_time_s >= max_sim_s:
                 break
             if k % steps_per_plan == 0:
                 t = time.perf_counter()
@@ -178,7 +182,7 @@ def drive_route(
         "min_ttc_s": None if not np.isfinite(tracker.min_ttc_s) else round(tracker.min_ttc_s, 2),
         "traffic_delay_s": round(tracker.traffic_delay_s, 3),
         "sim_s": round(sim_s, 2),
-        "ended": tracker.ended or f"world_{world_end}",
+        "ended": tracker.ended or (f"world_{world_end}" if world_end else "max_sim_s"),
         "end_detail": world_detail if tracker.ended is None else "",
         "timing": {k: round(v, 4) for k, v in timing.items()},
     }
