@@ -81,25 +81,24 @@ class Event:
 def time_to_collision(ego: AgentState, agents: list[AgentState]) -> float:
     """Smallest time (s, multiples of TTC_STEP_S up to TTC_HORIZON_S, inf if none) at which the
     ego's box overlaps an agent's box with both keeping their velocity."""
-    near = [
-        a
-        for a in agents
-        if math.hypot(a.pose.x_m - ego.pose.x_m, a.pose.y_m - ego.pose.y_m) < TTC_RANGE_M
-    ]
+    ev = ego.speed_mps * np.array([math.cos(ego.pose.yaw_rad), math.sin(ego.pose.yaw_rad)])
+    r_ego = 0.5 * math.hypot(ego.length_m, ego.width_m)
+    near, va = [], []
+    for a in agents:
+        v = a.speed_mps * np.array([math.cos(a.pose.yaw_rad), math.sin(a.pose.yaw_rad)])
+        d = math.hypot(a.pose.x_m - ego.pose.x_m, a.pose.y_m - ego.pose.y_m)
+        # only agents the relative motion can bring within reach of the ego in the horizon
+        reach = float(np.hypot(*(v - ev))) * TTC_HORIZON_S + r_ego
+        if d < TTC_RANGE_M and d < reach + 0.5 * math.hypot(a.length_m, a.width_m):
+            near.append(a)
+            va.append(v)
     if not near:
         return math.inf
+    va = np.array(va)  # (A, 2) m/s
     ts = np.arange(0.0, TTC_HORIZON_S + 1e-9, TTC_STEP_S)
-    ev = ego.speed_mps * np.array([math.cos(ego.pose.yaw_rad), math.sin(ego.pose.yaw_rad)])
-    base = [
-        box_corners(a.pose.x_m, a.pose.y_m, a.pose.yaw_rad, a.length_m, a.width_m) for a in near
-    ]
-    base = np.stack(base)  # (A, 4, 2)
-    va = np.array(
-        [
-            [a.speed_mps * math.cos(a.pose.yaw_rad), a.speed_mps * math.sin(a.pose.yaw_rad)]
-            for a in near
-        ]
-    )
+    base = np.stack(
+        [box_corners(a.pose.x_m, a.pose.y_m, a.pose.yaw_rad, a.length_m, a.width_m) for a in near]
+    )  # (A, 4, 2)
     e0 = box_corners(ego.pose.x_m, ego.pose.y_m, ego.pose.yaw_rad, ego.length_m, ego.width_m)
     # relative motion: move the agents by (v_a - v_ego) t, keep the ego where it is
     moved = base[None] + ((va - ev)[None] * ts[:, None, None])[:, :, None, :]  # (T, A, 4, 2)
