@@ -1,4 +1,8 @@
-"""The eight built-in towns: SUMO networks generated reproducibly from recipes, and cached.
+"""The built-in towns: SUMO networks generated reproducibly from recipes, and cached.
+
+Eight training towns (TOWN_NAMES, the ones a `datagen build --towns N` draws from) and one
+held-out evaluation town (HELD_OUT_TOWNS), generated the same way but never part of a build, as
+CARLA's Town05 is held out of training in the paper's Sec. IV-A (`drive routes` benchmarks it).
 
 Each town is built in three passes with SUMO's own tools (from the `eclipse-sumo` wheel):
 
@@ -51,6 +55,12 @@ TOWN_NAMES: tuple[str, ...] = (
     "roundabout",
     "mixed",
 )
+"""The training towns, in `--towns N` order."""
+
+HELD_OUT_TOWNS: tuple[str, ...] = ("boulevard",)
+"""Evaluation towns: built like the others, never in a build (closed-loop benchmark only)."""
+
+ALL_TOWNS: tuple[str, ...] = TOWN_NAMES + HELD_OUT_TOWNS
 
 RECIPE_VERSION = 1  # bump to invalidate every cached town after a change to this module
 
@@ -247,6 +257,12 @@ def _mixed(nodes: ET.Element, edges: ET.Element, rng: np.random.Generator) -> No
         e.set("priority", str(prio))
 
 
+def _boulevard(nodes: ET.Element, edges: ET.Element, rng: np.random.Generator) -> None:
+    """Edit: three-lane avenues every third row and column, then one roundabout."""
+    _arterials(every=3, lanes=3, speed_mps=16.67)(nodes, edges, rng)
+    _roundabouts(1, 26.0)(nodes, edges, rng)
+
+
 RECIPES: dict[str, Recipe] = {
     r.name: r
     for r in (
@@ -411,6 +427,29 @@ RECIPES: dict[str, Recipe] = {
             seed=18,
             control=(0.4, 0.15, 0.25),
             edit=_mixed,
+            netconvert=("--roundabouts.guess",),
+        ),
+        # Held out (HELD_OUT_TOWNS): a two-lane grid with three-lane avenues and a roundabout,
+        # a layout none of the training towns has (Town05's role: multi-lane, signal-heavy).
+        Recipe(
+            "boulevard",
+            "held out: two-lane grid, three-lane 60 km/h avenues, a roundabout",
+            (
+                "--grid",
+                "--grid.x-number",
+                "8",
+                "--grid.y-number",
+                "7",
+                "--grid.length",
+                "130",
+                "-L",
+                "2",
+                "-S",
+                "13.89",
+            ),
+            seed=19,
+            control=(0.5, 0.15, 0.15),
+            edit=_boulevard,
             netconvert=("--roundabouts.guess",),
         ),
     )
@@ -594,7 +633,7 @@ def default_cache_dir() -> Path:
 def town_net_path(name: str, cache_dir: Path | None = None) -> Path:
     """The built-in town `name`'s .net.xml, built on first use and cached."""
     if name not in RECIPES:
-        raise UserError(f"unknown town {name!r}; built-in towns: {', '.join(TOWN_NAMES)}")
+        raise UserError(f"unknown town {name!r}; built-in towns: {', '.join(ALL_TOWNS)}")
     recipe = RECIPES[name]
     cache = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     path = cache / f"{name}-{_recipe_key(recipe)}.net.xml"
@@ -723,7 +762,7 @@ def run(args: argparse.Namespace) -> int:
         path = check_network(args.net)
         rows.append((path.name.split(".")[0], "user network", path))
     else:
-        for name in TOWN_NAMES:
+        for name in ALL_TOWNS:
             rows.append((name, RECIPES[name].description, town_net_path(name, args.cache)))
     head = (
         f"{'town':<12} {'size (m)':>11} {'lights':>6} {'stop':>5} {'other':>5} "

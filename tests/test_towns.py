@@ -19,12 +19,24 @@ from datagen.towns import (
 )
 
 
-def test_there_are_eight_distinct_towns():
+def test_there_are_eight_training_towns_and_one_held_out():
     assert len(TOWN_NAMES) == 8 == len(set(TOWN_NAMES))
-    assert set(towns.RECIPES) == set(TOWN_NAMES)
+    assert towns.HELD_OUT_TOWNS == ("boulevard",)
+    assert not set(towns.HELD_OUT_TOWNS) & set(TOWN_NAMES)  # never part of a --towns N build
+    assert set(towns.RECIPES) == set(towns.ALL_TOWNS) == set(TOWN_NAMES) | {"boulevard"}
 
 
-@pytest.mark.parametrize("name", TOWN_NAMES)
+def test_a_build_never_draws_the_held_out_town():
+    from datagen.build import resolve_towns
+
+    for n in range(1, len(TOWN_NAMES) + 1):
+        args = argparse.Namespace(towns=n, town=[], net=[])
+        assert "boulevard" not in [t.name for t in resolve_towns(args)]
+    with pytest.raises(UserError, match="unknown town 'boulevard'"):
+        resolve_towns(argparse.Namespace(towns=None, town=["boulevard"], net=[]))
+
+
+@pytest.mark.parametrize("name", towns.ALL_TOWNS)
 def test_every_town_has_lights_stop_junctions_sidewalks_and_crossings(name):
     path = town_net_path(name)
     s = network_stats(path)
@@ -89,4 +101,5 @@ def test_datagen_towns_prints_the_table(capsys):
     out = capsys.readouterr().out.splitlines()
     assert "lights" in out[0] and "sidewalk-km" in out[0]
     rows = out[2:]
-    assert [r.split()[0] for r in rows] == list(TOWN_NAMES)
+    assert [r.split()[0] for r in rows] == list(towns.ALL_TOWNS)
+    assert "held out" in rows[-1]

@@ -3,7 +3,8 @@
 Keys: model (state dict), optimizer (state dict), model_config and train_config (dicts,
 `training/config.py`), epoch (epochs completed), step (optimizer steps taken; the learning-rate
 schedule is a pure function of it), rng (per DDP rank, the torch CPU and CUDA generator states),
-val_episodes (the held-out episode ids), metrics (the last epoch's `metrics.jsonl` line).
+val_episodes (the held-out episode ids), metrics (the last epoch's `metrics.jsonl` line),
+sensor_config (the shards' iidsu.config_json, what closed-loop driving checks its sensors against).
 """
 
 from __future__ import annotations

@@ -19,6 +19,7 @@ encoded rows before decoding them (OpenCV, via `schemas.codecs`) and rendering t
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -161,6 +162,36 @@ def downsample_bev(classes: np.ndarray, output_px: int) -> np.ndarray:
     return np.where(lane, LANE, np.where(road, DRIVABLE, 0)).astype(np.uint8)
 
 
+def model_inputs(
+    image: bytes, lidar_bev: bytes, lidar_ground_t: bytes | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The camera and LiDAR the model reads, from their shard encodings (schemas.codecs):
+    image (3, 256, 256) uint8 RGB and lidar (4, 256, 256) uint8 counts ch0..ch3, or, given
+    `lidar_ground_t` (the single-frame ablation), (2, 256, 256): the current sweep's at-ground
+    and above-ground hits. Closed-loop driving (drive/) feeds the model through this too, so it
+    sees what it was trained on."""
+    lidar = codecs.decode_lidar_bev(lidar_bev).transpose(2, 0, 1)
+    if lidar_ground_t is not None:  # the same 1-channel PNG codec as bev_semantic
+        lidar = np.stack([codecs.decode_bev_semantic(lidar_ground_t), lidar[1]])
+    return (
+        np.ascontiguousarray(codecs.decode_image(image).transpose(2, 0, 1)),
+        np.ascontiguousarray(lidar),
+    )
+
+
+def sensor_config(index: pd.DataFrame) -> dict | None:
+    """The sensor configuration the frames of `index` were recorded with (the shards'
+    iidsu.config_json), None if they carry none; UserError if the shards disagree."""
+    configs = {
+        (pq.read_schema(f).metadata or {}).get(schemas.META_CONFIG_JSON.encode())
+        for f in index.path.unique()
+    }
+    if len(configs) > 1:
+        raise UserError("the shards were recorded with different sensor configurations")
+    (config,) = configs
+    return json.loads(config) if config else None
+
+
 def _sample(rows: dict, i: int, output_px: int, min_lidar_points: int = MIN_LIDAR_POINTS) -> dict:
     """Decode row `i` of `_row_arrays` output into one training sample (numpy arrays).
 
@@ -176,13 +207,11 @@ def _sample(rows: dict, i: int, output_px: int, min_lidar_points: int = MIN_LIDA
     boxes = visible_boxes({k: v[a:b] for k, v in rows["boxes"].items()}, min_lidar_points)
     density = render_density(boxes, output_px)
     bev = downsample_bev(codecs.decode_bev_semantic(rows["bev_semantic"][i]), output_px)
-    lidar = codecs.decode_lidar_bev(rows["lidar_bev"][i]).transpose(2, 0, 1)
-    if GROUND_T in rows:  # the current sweep only: ground hits at t, above-ground hits at t
-        ground_t = codecs.decode_bev_semantic(rows[GROUND_T][i])  # the same 1-channel PNG codec
-        lidar = np.stack([ground_t, lidar[1]])
+    ground_t = rows[GROUND_T][i] if GROUND_T in rows else None
+    image, lidar = model_inputs(rows["image"][i], rows["lidar_bev"][i], ground_t)
     return {
-        "image": np.ascontiguousarray(codecs.decode_image(rows["image"][i]).transpose(2, 0, 1)),
-        "lidar": np.ascontiguousarray(lidar),
+        "image": image,
+        "lidar": lidar,
         "speed": np.float32(rows["ego_speed"][i]),
         "target_point": rows["target_point"][i].astype(np.float32),
         "waypoints": rows["waypoints"][i].astype(np.float32),

@@ -225,6 +225,7 @@ def fit(model_cfg: ModelConfig, cfg: TrainConfig, resume: bool = False, device: 
 def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, state: dict | None):
     # Data: every rank scans and splits the same way (both are deterministic).
     index = data.scan(cfg.shards)
+    sensors = data.sensor_config(index)
     is_val = data.split(index, cfg.val_fraction, cfg.val_towns, cfg.seed)
     stream = data.FrameStream(
         index[~is_val],
@@ -375,6 +376,7 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
                 "step": step,
                 "rng": rngs,
                 "val_episodes": sorted(index.episode_id[is_val].unique()),
+                "sensor_config": sensors,  # what `drive eval` checks the world against
                 "metrics": metrics,
             }
             save_checkpoint(out / CHECKPOINT, checkpoint)

@@ -1,0 +1,51 @@
+"""`drive`: closed-loop evaluation.
+
+    drive routes --standard                                        # the benchmark route files
+    drive eval --policy ckpt:runs/demo/last.pt --routes drive/routes/heldout_short.json \\
+        --workers 2 --out runs/eval_heldout
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from datagen.errors import UserError
+
+
+def main(argv: list[str] | None = None) -> int:
+    from drive import evaluate, routes
+
+    p = argparse.ArgumentParser(prog="drive", description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("routes", help="write a deterministic route set (JSON)")
+    routes.add_arguments(r)
+    e = sub.add_parser("eval", help="drive a route set with a policy and score it")
+    e.add_argument("--policy", required=True, help="expert | constant | ckpt:PATH")
+    e.add_argument("--routes", required=True, type=Path, help="route file (drive routes)")
+    e.add_argument("--out", required=True, type=Path, help="results directory")
+    e.add_argument("--workers", type=int, default=1, help="routes driven in parallel")
+    e.add_argument("--record", type=int, default=0, help="MP4 videos of the first N routes")
+    e.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
+    e.add_argument("--net", type=Path, default=None, help="the network of a --net route file")
+    e.add_argument("--limit", type=int, default=0, help="drive only the first N routes")
+    e.add_argument(
+        "--baseline", type=Path, default=None, help="an expert run's --out: traffic delay vs it"
+    )
+    args = p.parse_args(argv)
+    try:
+        from training.errors import UserError as TrainError
+    except ImportError:  # torch not installed: only the checkpoint policy needs it
+        TrainError = UserError
+    try:
+        if args.command == "routes":
+            return routes.run(args)
+        return evaluate.run(args)
+    except (UserError, TrainError) as e:
+        print(f"drive: error: {str(e).splitlines()[0] if str(e) else e!r}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,194 @@
+"""From planned waypoints to the ego's next pose: two PID controllers and a kinematic bicycle.
+
+The controllers are TransFuser's (Prakash et al. 2021, `team_code/planner.py` and the agent's
+`control_pid`, the paper's Sec. III-B "two PID controllers"): the lateral one steers towards
+the mean of the first two waypoints, the longitudinal one tracks the speed the first two
+waypoints imply (their distance / 0.5 s). Each PID keeps a window of its last N errors; I is
+their mean and D the last difference, as in TransFuser.
+
+Plans come at 2 Hz (the data's rate; the LiDAR history is 2 Hz) and the controllers run every
+0.1 s SUMO step. Between plans the waypoints are held in the world frame as a trajectory timed
+from the plan (0 s: the ego's pose when planned; +0.5 .. +2.0 s: the waypoints), and at
+`elapsed` seconds after the plan the controllers see the trajectory's points at
+`elapsed + 0.5 s` and `elapsed + 1.0 s` in the current ego frame -- exactly TransFuser's two
+waypoints when `elapsed` is 0.
+
+The vehicle is a kinematic bicycle about the box centre (Rajamani, "Vehicle Dynamics and
+Control", Sec. 2.2): slip angle beta = atan(l_r / L tan delta), x' = v cos(yaw + beta),
+y' = v sin(yaw + beta), yaw' = v / l_r sin beta, v' = a. Steering is positive to the left
+(yaw counter-clockwise), unlike CARLA's.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from datagen.state import Pose
+from schemas import WAYPOINT_TIMES_S
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """Gains and limits (TransFuser's config.py values unless noted).
+
+    Attributes:
+        turn_kp, turn_ki, turn_kd, turn_n: lateral PID on the heading error / 90 degrees.
+        speed_kp, speed_ki, speed_kd, speed_n: longitudinal PID on the speed error, m/s.
+        brake_speed_mps: brake when the planned speed is below this.
+        brake_ratio: ... or when speed / planned speed exceeds this.
+        clip_delta_mps: the speed error the longitudinal PID sees is clipped to [0, this].
+        max_throttle: throttle limit, 0..1.
+    """
+
+    turn_kp: float = 1.25
+    turn_ki: float = 0.75
+    turn_kd: float = 0.3
+    turn_n: int = 40
+    speed_kp: float = 5.0
+    speed_ki: float = 0.5
+    speed_kd: float = 1.0
+    speed_n: int = 40
+    brake_speed_mps: float = 0.4
+    brake_ratio: float = 1.1
+    clip_delta_mps: float = 0.25
+    max_throttle: float = 0.75
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    """Kinematic bicycle of the ego (a mid-size sedan, as datagen.world's ego box).
+
+    Attributes:
+        wheelbase_m: L; rear_to_centre_m: l_r, rear axle to the box centre.
+        max_steer_rad: front-wheel angle at steer = 1 (35 degrees, a passenger car's lock).
+        max_accel_mps2: acceleration at throttle 1.
+        brake_decel_mps2: deceleration when braking.
+        coast_decel_mps2: rolling resistance and drag without throttle or brake.
+    """
+
+    wheelbase_m: float = 2.85
+    rear_to_centre_m: float = 1.425
+    max_steer_rad: float = math.radians(35.0)
+    max_accel_mps2: float = 4.0
+    brake_decel_mps2: float = 6.0
+    coast_decel_mps2: float = 0.3
+
+
+@dataclass(frozen=True)
+class Control:
+    """One step's command: steer in [-1, 1] (positive left), throttle in [0, 1], brake."""
+
+    steer: float
+    throttle: float
+    brake: bool
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """The ego's kinematic state: box-centre pose (world frame) and speed, m/s (>= 0)."""
+
+    pose: Pose
+    speed_mps: float
+
+
+class PID:
+    """PID over a window of the last `n` errors (TransFuser's PIDController)."""
+
+    def __init__(self, kp: float, ki: float, kd: float, n: int):
+        self.kp, self.ki, self.kd = kp, ki, kd
+        self.window: deque[float] = deque([0.0] * n, maxlen=n)
+
+    def step(self, error: float) -> float:
+        self.window.append(float(error))
+        integral = float(np.mean(self.window))
+        derivative = self.window[-1] - self.window[-2] if len(self.window) >= 2 else 0.0
+        return self.kp * error + self.ki * integral + self.kd * derivative
+
+
+@dataclass
+class Controller:
+    """Lateral and longitudinal PID (stateful: their error windows)."""
+
+    config: ControllerConfig = field(default_factory=ControllerConfig)
+
+    def __post_init__(self) -> None:
+        c = self.config
+        self.turn = PID(c.turn_kp, c.turn_ki, c.turn_kd, c.turn_n)
+        self.speed = PID(c.speed_kp, c.speed_ki, c.speed_kd, c.speed_n)
+
+    def control(self, waypoints_ego: np.ndarray, speed_mps: float) -> Control:
+        """waypoints_ego: (>=2, 2) float, m, ego frame, 0.5 s apart -> this step's Control."""
+        c = self.config
+        w = np.asarray(waypoints_ego, dtype=np.float64)
+        desired = float(np.linalg.norm(w[1] - w[0])) / (WAYPOINT_TIMES_S[1] - WAYPOINT_TIMES_S[0])
+        brake = desired < c.brake_speed_mps or speed_mps / max(desired, 1e-6) > c.brake_ratio
+        aim = 0.5 * (w[0] + w[1])
+        angle = math.degrees(math.atan2(aim[1], aim[0])) / 90.0  # heading error, + = left
+        if speed_mps < 0.01:  # TransFuser: no steering at standstill
+            angle = 0.0
+        steer = float(np.clip(self.turn.step(angle), -1.0, 1.0))
+        delta = float(np.clip(desired - speed_mps, 0.0, c.clip_delta_mps))
+        throttle = float(np.clip(self.speed.step(delta), 0.0, c.max_throttle))
+        return Control(steer=steer, throttle=0.0 if brake else throttle, brake=bool(brake))
+
+
+def bicycle_step(
+    state: VehicleState, control: Control, dt_s: float, vehicle: VehicleConfig = VehicleConfig()
+) -> VehicleState:
+    """Advance the kinematic bicycle by dt_s (module docstring); speed never goes negative."""
+    v = state.speed_mps
+    if control.brake:
+        a = -vehicle.brake_decel_mps2
+    elif control.throttle > 0.0:
+        a = control.throttle * vehicle.max_accel_mps2
+    else:
+        a = -vehicle.coast_decel_mps2
+    delta = control.steer * vehicle.max_steer_rad
+    beta = math.atan(vehicle.rear_to_centre_m / vehicle.wheelbase_m * math.tan(delta))
+    p = state.pose
+    # integrate the pose with the step's mean speed (exact for constant acceleration on a line)
+    v1 = max(0.0, v + a * dt_s)
+    v_mid = 0.5 * (v + v1)
+    yaw = p.yaw_rad + v_mid / vehicle.rear_to_centre_m * math.sin(beta) * dt_s
+    mid_yaw = 0.5 * (p.yaw_rad + yaw)
+    x = p.x_m + v_mid * math.cos(mid_yaw + beta) * dt_s
+    y = p.y_m + v_mid * math.sin(mid_yaw + beta) * dt_s
+    yaw = (yaw + math.pi) % (2 * math.pi) - math.pi
+    return VehicleState(Pose(x, y, yaw), v1)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A plan held in the world frame: the ego's pose when planned and its waypoints.
+
+    Attributes:
+        time_s: simulation time of the plan, s.
+        points_xy_m: (1 + n, 2) float64 world frame: the ego's box centre at the plan's time,
+            then the waypoints at WAYPOINT_TIMES_S after it.
+    """
+
+    time_s: float
+    points_xy_m: np.ndarray
+
+    @staticmethod
+    def from_ego(time_s: float, pose: Pose, waypoints_ego: np.ndarray) -> Plan:
+        """waypoints_ego: (n, 2) m, ego frame at `pose` (the model's output)."""
+        world = pose.world_from_ego(np.asarray(waypoints_ego, dtype=np.float64))
+        return Plan(time_s, np.vstack([[pose.x_m, pose.y_m], world]))
+
+    def at(self, time_s: float, pose: Pose) -> np.ndarray:
+        """(2, 2) the trajectory at +0.5 s and +1.0 s from `time_s`, in the frame of `pose`
+        (linear in time between points, extrapolated past the last one)."""
+        times = np.concatenate([[0.0], WAYPOINT_TIMES_S[: len(self.points_xy_m) - 1]])
+        pts = self.points_xy_m
+        elapsed = time_s - self.time_s
+        out = []
+        for t in (elapsed + WAYPOINT_TIMES_S[0], elapsed + WAYPOINT_TIMES_S[1]):
+            k = int(np.clip(np.searchsorted(times, t) - 1, 0, len(times) - 2))
+            f = (t - times[k]) / (times[k + 1] - times[k])
+            out.append(pts[k] + f * (pts[k + 1] - pts[k]))
+        return pose.ego_from_world(np.array(out))

@@ -1,0 +1,298 @@
+"""`drive eval`: drive every route of a route file with one policy and score it.
+
+    drive eval --policy ckpt:runs/demo/last.pt --routes drive/routes/heldout_short.json --out runs/eval
+    drive eval --policy expert --routes drive/routes/heldout_short.json --workers 2 --out runs/expert
+
+Per route (one SUMO world each, seeded by the route): the world's traffic runs around the ego;
+every 0.1 s step the infraction tracker (drive/infractions.py) judges the ground truth. The
+expert drives inside the world as when recording data; any other policy plans 4 waypoints at
+2 Hz (the data's rate) and the controller (drive/controller.py) moves the ego every step,
+placed in SUMO anywhere (off its lane or the road too) with its speed, so others react to it.
+The route ends when it is complete, on a route deviation, a blocked agent or a timeout.
+
+Writes OUT/routes/<route_id>.json (scores, every infraction with time and position, the extra
+measures, timing apart under "timing"), OUT/summary.json and OUT/summary.txt (the table of the
+paper's Table III), and with --record N, OUT/videos/<route_id>.mp4 for the first N routes. The
+same route file, policy and checkpoint give the same numbers (timing aside).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from datagen.errors import UserError
+from drive import score
+from drive.controller import Controller, Plan, VehicleState, bicycle_step
+from drive.policy import PolicySpec, constant_waypoints
+from drive.routes import Route, resolve_net
+
+PLAN_PERIOD_S = 0.5  # the policy plans at the data's 2 Hz
+STEP_S = 0.1  # SUMO step: the controller and the infraction tracker run every step
+HISTORY = 2  # past LiDAR sweeps in the BEV (datagen.episode.HISTORY)
+
+
+@dataclass(frozen=True)
+class Task:
+    """One route to drive: the route, the policy, where to write, whether to record a video."""
+
+    route: Route
+    policy: PolicySpec
+    out_dir: str
+    record: bool
+    net_override: str | None = None
+
+
+def _write_json(path: Path, doc: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
+    os.replace(tmp, path)
+
+
+def drive_route(
+    task: Task,
+    planner: Callable[[object], np.ndarray] | None = None,
+    on_start: Callable[[], None] | None = None,
+    world_options: dict | None = None,
+    max_sim_s: float | None = None,
+) -> dict:
+    """Drive one route; returns (and writes) its result document.
+
+    For scripted tests: `planner(frame) -> (4, 2)` ego-frame waypoints replaces the policy,
+    `on_start()` runs once the world has started (e.g. to park a car with libsumo), and
+    `world_options` overrides WorldConfig fields (n_vehicles, n_pedestrians, warmup_s).
+    `max_sim_s` stops the route after that much simulated time (bench/drive.py), unscored.
+    """
+    from datagen.episode import SensorConfig, Sensors, episode_rng
+    from datagen.scene import load_static_scene
+    from drive.geometry import route_geometry
+    from drive.infractions import InfractionTracker
+    from drive.layout import Layout
+    from drive.policy import ModelPolicy
+    from drive.sim import DrivenWorld
+    from schemas import codecs
+
+    t0 = time.perf_counter()
+    route, spec = task.route, task.policy
+    net = resolve_net(route, Path(task.net_override) if task.net_override else None)
+    geom = route_geometry(net, route.edges)
+    static = load_static_scene(net)
+    layout = Layout.from_static(static)
+    sensor_cfg = SensorConfig()
+    model = ModelPolicy(spec, sensor_cfg.to_dict()) if spec.kind == "ckpt" else None
+    need_sensors = model is not None or task.record
+    sensors = (
+        Sensors(static, sensor_cfg, route.weather, episode_rng(route.seed))
+        if need_sensors
+        else None
+    )
+    recorder = None
+    if task.record:
+        from drive.video import Recorder
+
+        recorder = Recorder(Path(task.out_dir) / "videos" / f"{route.route_id}.mp4")
+    tracker = InfractionTracker(geom, layout)
+    timing = {"setup": time.perf_counter() - t0, "sim": 0.0, "sensors": 0.0, "policy": 0.0}
+    timing.update(judge=0.0)
+    external = planner is not None or not spec.privileged
+    with DrivenWorld(net, route, external=external, **(world_options or {})) as world:
+        if on_start is not None:
+            on_start()
+        frame = world.state()
+        vehicle = VehicleState(frame.ego.pose, frame.ego.speed_mps)
+        controller = Controller()
+        sweeps: deque = deque(maxlen=HISTORY + 1)
+        plan: Plan | None = None
+        waypoints = None
+        steps_per_plan = round(PLAN_PERIOD_S / STEP_S)
+        k = 0
+        while True:
+            t = time.perf_counter()
+            tracker.step(frame, STEP_S)
+            timing["judge"] += time.perf_counter() - t
+            if tracker.ended is not None or world.ended is not None:
+                break
+            if max_sim_s is not None and frame.time_s - tracker.start_time_s >= max_sim_s:
+                break
+            if k % steps_per_plan == 0:
+                t = time.perf_counter()
+                image_jpeg = lidar_png = None
+                if sensors is not None:
+                    scene = sensors.scene(frame)
+                    sweeps.appendleft(sensors.sweep(scene, frame))  # [t, t-1, t-2]
+                    # until the history is full, the oldest sweep stands in for the missing ones
+                    hist = list(sweeps) + [sweeps[-1]] * (HISTORY + 1 - len(sweeps))
+                    bev = sensors.lidar_bev(hist)
+                    image = sensors.image(scene, frame)
+                    image_jpeg = codecs.encode_image(image, sensor_cfg.jpeg_quality)
+                    lidar_png = codecs.encode_lidar_bev(bev)
+                timing["sensors"] += time.perf_counter() - t
+                t = time.perf_counter()
+                if planner is not None:
+                    waypoints = planner(frame)
+                elif model is not None:
+                    waypoints = model.plan(frame, image_jpeg, lidar_png)
+                elif spec.kind == "constant":
+                    waypoints = constant_waypoints()
+                if waypoints is not None:
+                    plan = Plan.from_ego(frame.time_s, frame.ego.pose, waypoints)
+                timing["policy"] += time.perf_counter() - t
+                if recorder is not None:
+                    recorder.add(frame, image_jpeg, lidar_png, plan, tracker)
+            t = time.perf_counter()
+            if plan is not None:
+                ctrl = controller.control(plan.at(frame.time_s, vehicle.pose), vehicle.speed_mps)
+                vehicle = bicycle_step(vehicle, ctrl, STEP_S)
+                world.place_ego(vehicle.pose, vehicle.speed_mps)
+            world.step()
+            frame = world.state()
+            if plan is None:  # the expert drives: follow its state
+                vehicle = VehicleState(frame.ego.pose, frame.ego.speed_mps)
+            timing["sim"] += time.perf_counter() - t
+            k += 1
+        world_end = world.ended
+        world_detail = world.end_detail
+        sim_s = frame.time_s - (tracker.start_time_s or frame.time_s)
+    if recorder is not None:
+        recorder.close()
+    result = score.score_route(
+        tracker.route_completion_pct, tracker.counts(), tracker.off_route_share, geom.length_m
+    )
+    timing["total"] = time.perf_counter() - t0
+    doc = {
+        "route": route.to_dict(),
+        "policy": spec.name,
+        "rc": round(result.rc, 4),
+        "is": round(result.infraction_score, 6),
+        "ds": round(result.ds, 4),
+        "counts": result.counts,
+        "events": [e.to_dict() for e in tracker.events],
+        "off_road_share": round(tracker.off_road_share, 6),
+        "off_route_share": round(result.off_route_share, 6),
+        "km_driven": round(result.km_driven, 6),
+        "distance_m": round(tracker.distance_m, 3),
+        "min_ttc_s": None if not np.isfinite(tracker.min_ttc_s) else round(tracker.min_ttc_s, 2),
+        "traffic_delay_s": round(tracker.traffic_delay_s, 3),
+        "sim_s": round(sim_s, 2),
+        "ended": tracker.ended or (f"world_{world_end}" if world_end else "max_sim_s"),
+        "end_detail": world_detail if tracker.ended is None else "",
+        "timing": {k: round(v, 4) for k, v in timing.items()},
+    }
+    _write_json(Path(task.out_dir) / "routes" / f"{route.route_id}.json", doc)
+    return doc
+
+
+def route_score(doc: dict) -> score.RouteScore:
+    """The RouteScore of a per-route result document."""
+    return score.score_route(
+        doc["rc"], doc["counts"], doc["off_route_share"], doc["route"]["length_m"]
+    )
+
+
+def execute(tasks: list[Task], fn: Callable[[Task], dict], workers: int) -> Iterable[dict]:
+    """Run fn over tasks, serially or on a process pool of `workers` (results in task order)."""
+    if workers <= 1:
+        for t in tasks:
+            yield fn(t)
+        return
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
+        yield from pool.map(fn, tasks)
+
+
+def summary_doc(name: str, docs: list[dict], baseline: dict[str, dict] | None = None) -> dict:
+    """Aggregates of a run: the Summary, plus the extra measures over routes."""
+    s = score.summarise([route_score(d) for d in docs])
+    ttc = [d["min_ttc_s"] for d in docs if d["min_ttc_s"] is not None]
+    out = {
+        "routes_file": name,
+        "policy": docs[0]["policy"],
+        **{k: v for k, v in asdict(s).items()},
+        "min_ttc_s_median": float(np.median(ttc)) if ttc else None,
+        "traffic_delay_s_mean": float(np.mean([d["traffic_delay_s"] for d in docs])),
+        "sim_s": float(sum(d["sim_s"] for d in docs)),
+        "wall_s": float(sum(d["timing"]["total"] for d in docs)),
+    }
+    if baseline:
+        delta = [
+            d["traffic_delay_s"] - baseline[d["route"]["route_id"]]["traffic_delay_s"]
+            for d in docs
+            if d["route"]["route_id"] in baseline
+        ]
+        out["traffic_delay_vs_baseline_s_mean"] = float(np.mean(delta)) if delta else None
+    return out
+
+
+def format_summary(doc: dict) -> str:
+    s = score.Summary(**{f: doc[f] for f in score.Summary.__dataclass_fields__})
+    lines = [score.format_table([(doc["policy"], s)])]
+    lines.append(
+        f"{s.n_routes} routes, {s.km_driven:.2f} km driven, {doc['sim_s']:.0f} s simulated in "
+        f"{doc['wall_s']:.0f} s of route wall time; infractions per km; ± 95% CI over routes"
+    )
+    ttc = doc["min_ttc_s_median"]
+    extra = f"median min TTC {ttc:.1f} s" if ttc is not None else "no TTC below 5 s"
+    extra += f", mean traffic delay {doc['traffic_delay_s_mean']:.1f} vehicle-s per route"
+    if doc.get("traffic_delay_vs_baseline_s_mean") is not None:
+        extra += f" ({doc['traffic_delay_vs_baseline_s_mean']:+.1f} vs the baseline)"
+    lines.append(extra)
+    return "\n".join(lines)
+
+
+def run(args) -> int:
+    from drive.policy import parse_policy
+    from drive.routes import load_routes
+
+    if args.workers < 1:
+        raise UserError(f"--workers must be >= 1, got {args.workers}")
+    if args.record < 0:
+        raise UserError(f"--record must be >= 0, got {args.record}")
+    spec = parse_policy(args.policy, args.device)
+    name, routes = load_routes(args.routes)
+    if args.limit:
+        routes = routes[: args.limit]
+    for r in {(r.town, r.net_path, r.network_sha256): r for r in routes}.values():
+        resolve_net(r, args.net)  # a route file for another network fails before any driving
+    if spec.kind == "ckpt":  # a sensor mismatch fails before any driving, too
+        from datagen.episode import SensorConfig
+        from drive.policy import check_sensor_config
+        from training.checkpoint import load_checkpoint
+
+        check_sensor_config(load_checkpoint(spec.path), SensorConfig().to_dict(), spec.path)
+    baseline = None
+    if args.baseline is not None:
+        baseline = {}
+        for f in sorted((Path(args.baseline) / "routes").glob("*.json")):
+            d = json.loads(f.read_text())
+            baseline[d["route"]["route_id"]] = d
+        if not baseline:
+            raise UserError(f"--baseline {args.baseline}: no routes/*.json results in it")
+    out = Path(args.out)
+    tasks = [
+        Task(r, spec, str(out), i < args.record, str(args.net) if args.net else None)
+        for i, r in enumerate(routes)
+    ]
+    from tqdm import tqdm
+
+    docs = []
+    with tqdm(total=len(tasks), desc=f"drive {spec.name}", unit="route") as bar:
+        for doc in execute(tasks, drive_route, args.workers):
+            docs.append(doc)
+            bar.update()
+            bar.set_postfix(ds=f"{doc['ds']:.1f}", last=doc["ended"])
+    summary = summary_doc(name, docs, baseline)
+    _write_json(out / "summary.json", summary)
+    text = format_summary(summary)
+    (out / "summary.txt").write_text(text + "\n")
+    print(text)
+    return 0

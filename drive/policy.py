@@ -1,0 +1,120 @@
+"""Who drives the ego: `expert` (the privileged rule-based driver of the data, the ceiling),
+`constant` (straight ahead at a fixed speed, the floor) or `ckpt:PATH` (a trained II-DSU).
+
+A non-privileged policy returns 4 waypoints (ego frame, m, +0.5 .. +2.0 s) from one recorded
+instant; drive/controller.py turns them into the ego's motion. The checkpoint policy sees what
+the model was trained on (paper Sec. III-A): the camera and the 2 Hz LiDAR BEV history from the
+sensors the data was recorded with (datagen.episode.Sensors), encoded as in the shards and
+decoded by the trainer's own `training.data.model_inputs`, the ego's speed and the route's
+target point in the ego frame (the model reads no command).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from datagen.errors import UserError
+from datagen.state import FrameState
+from schemas import WAYPOINT_TIMES_S
+
+CONSTANT_SPEED_MPS = 6.0  # `constant`: about 22 km/h, straight ahead
+
+
+@dataclass(frozen=True)
+class PolicySpec:
+    """A parsed --policy: kind ("expert", "constant", "ckpt"), checkpoint path, device."""
+
+    kind: str
+    path: str | None = None
+    device: str = "auto"
+
+    @property
+    def name(self) -> str:
+        return f"ckpt:{Path(self.path).name}" if self.kind == "ckpt" else self.kind
+
+    @property
+    def privileged(self) -> bool:
+        return self.kind == "expert"
+
+
+def parse_policy(text: str, device: str = "auto") -> PolicySpec:
+    """'expert' | 'constant' | 'ckpt:PATH' -> PolicySpec; UserError for anything else (the
+    checkpoint is checked to exist and load here, before any route starts)."""
+    if text in ("expert", "constant"):
+        return PolicySpec(text, device=device)
+    if text.startswith("ckpt:"):
+        path = text[len("ckpt:") :]
+        from training.checkpoint import load_checkpoint
+        from training.errors import UserError as TrainError
+
+        try:
+            load_checkpoint(path)
+        except TrainError as e:
+            raise UserError(f"--policy {text}: {e}") from None
+        return PolicySpec("ckpt", path, device)
+    raise UserError(f"--policy {text!r}: expected expert, constant or ckpt:PATH")
+
+
+def constant_waypoints(speed_mps: float = CONSTANT_SPEED_MPS) -> np.ndarray:
+    """(4, 2) straight ahead at `speed_mps`, ego frame."""
+    return np.array([[speed_mps * t, 0.0] for t in WAYPOINT_TIMES_S])
+
+
+def _normalised(config: dict) -> dict:
+    return json.loads(json.dumps(config, sort_keys=True))
+
+
+def check_sensor_config(checkpoint: dict, world_config: dict, where: str) -> None:
+    """UserError naming the differing fields if the checkpoint's data was recorded with other
+    sensors than the world's (checkpoints from before sensor_config was stored pass)."""
+    trained = checkpoint.get("sensor_config")
+    if trained is None:
+        return
+    a, b = _normalised(trained), _normalised(world_config)
+    if a != b:
+        keys = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+        raise UserError(
+            f"{where}: trained on data from other sensors than this world's (differs in "
+            f"{', '.join(keys)}); evaluate with the sensors the data was recorded with"
+        )
+
+
+class ModelPolicy:
+    """A trained II-DSU from a checkpoint, on CPU or CUDA (bf16 autocast there)."""
+
+    def __init__(self, spec: PolicySpec, sensor_config: dict):
+        import torch
+
+        from training.checkpoint import load_checkpoint, model_from_checkpoint
+        from training.fit import choose_device
+
+        state = load_checkpoint(spec.path)
+        check_sensor_config(state, sensor_config, spec.path)
+        self.device = choose_device(spec.device)
+        self.model = model_from_checkpoint(state, self.device)
+        self.torch = torch
+
+    def plan(self, frame: FrameState, image_jpeg: bytes, lidar_png: bytes) -> np.ndarray:
+        """(4, 2) waypoints, ego frame, m, from one instant's encoded sensors."""
+        from training.data import model_inputs
+        from training.fit import autocast
+
+        torch = self.torch
+        image, lidar = model_inputs(image_jpeg, lidar_png)
+        pose = frame.ego.pose
+        tp = pose.ego_from_world(np.array([frame.target_point_xy_m]))[0]
+        dev = self.device
+        m = self.model
+        speed = torch.tensor([frame.ego.speed_mps], dtype=torch.float32, device=dev)
+        with torch.no_grad(), autocast(dev):
+            # IIDSU.forward's planning branch only: the dense heads are not needed to drive
+            f = m.encode(
+                torch.from_numpy(image)[None].to(dev), torch.from_numpy(lidar)[None].to(dev), speed
+            )
+            target = torch.tensor(tp[None], dtype=torch.float32, device=dev)
+            waypoints = m.heads["planning"](m.eca["planning"](f), target)  # (1, 4, 2)
+        return waypoints[0].float().cpu().numpy().astype(np.float64)

@@ -1,0 +1,160 @@
+"""`drive eval` with real SUMO on small routes: the expert scores as the ceiling, `constant` far
+lower, results are reproducible, and bad input is one clear line with a non-zero exit."""
+
+import json
+from dataclasses import replace
+
+import pytest
+
+from datagen.towns import build_plain_network, town_net_path
+from drive import cli
+from drive.evaluate import Task, drive_route, summary_doc
+from drive.policy import PolicySpec
+from drive.routes import generate, load_routes, save_routes
+
+
+@pytest.fixture(scope="module")
+def route_file(tmp_path_factory):
+    # seed 0: both routes turn at a junction, so driving straight cannot complete them
+    d = tmp_path_factory.mktemp("routes")
+    routes = generate(town_net_path("grid_small"), 2, 0, seed=0, prefix="gs", town="grid_small")
+    path = d / "gs.json"
+    save_routes(routes, path, "gs")
+    return path
+
+
+@pytest.fixture(scope="module")
+def expert_docs(route_file, tmp_path_factory):
+    out = tmp_path_factory.mktemp("expert")
+    _, routes = load_routes(route_file)
+    return [drive_route(Task(r, PolicySpec("expert"), str(out), False)) for r in routes]
+
+
+def _numbers(doc):
+    return {k: v for k, v in doc.items() if k != "timing"}
+
+
+def test_expert_scores_the_ceiling_without_collisions_or_red_lights(expert_docs):
+    s = summary_doc("gs", expert_docs)
+    assert s["ds"] >= 95.0, [(d["ds"], d["ended"], d["events"]) for d in expert_docs]
+    for d in expert_docs:
+        c = d["counts"]
+        assert c["collision_vehicle"] == c["collision_pedestrian"] == c["collision_layout"] == 0
+        assert c["red_light"] == 0 and c["stop_sign"] == 0
+        assert d["ended"] == "route_complete"
+
+
+def test_same_route_and_seed_give_identical_numbers(route_file, expert_docs, tmp_path):
+    _, routes = load_routes(route_file)
+    again = drive_route(Task(routes[0], PolicySpec("expert"), str(tmp_path), False))
+    assert _numbers(again) == _numbers(expert_docs[0])
+    on_disk = json.loads((tmp_path / "routes" / f"{routes[0].route_id}.json").read_text())
+    assert _numbers(on_disk) == _numbers(again)
+
+
+def test_constant_scores_far_below_the_expert(route_file, expert_docs, tmp_path):
+    _, routes = load_routes(route_file)
+    docs = [drive_route(Task(r, PolicySpec("constant"), str(tmp_path), False)) for r in routes]
+    ds = summary_doc("gs", docs)["ds"]
+    assert ds < 0.5 * summary_doc("gs", expert_docs)["ds"], [(d["ds"], d["ended"]) for d in docs]
+
+
+def _error(capsys, argv):
+    rc = cli.main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc != 0
+    assert len(err) == 1 and err[0].startswith("drive: error:"), err
+    return err[0]
+
+
+def test_bad_policies_are_one_line_errors(route_file, tmp_path, capsys):
+    base = ["eval", "--routes", str(route_file), "--out", str(tmp_path / "o")]
+    assert "no such checkpoint" in _error(capsys, base + ["--policy", f"ckpt:{tmp_path}/x.pt"])
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not a checkpoint")
+    assert "not a checkpoint" in _error(capsys, base + ["--policy", f"ckpt:{junk}"])
+    assert "expected expert, constant" in _error(capsys, base + ["--policy", "human"])
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_checkpoint_of_other_sensors_is_refused(route_file, tmp_path, capsys):
+    torch = pytest.importorskip("torch")
+    from datagen.episode import SensorConfig
+    from training.config import PRESETS
+    from training.model import IIDSU
+
+    cfg = PRESETS["tiny"][0]
+    sensors = SensorConfig().to_dict()
+    sensors["lidar"]["channels"] = 16  # data recorded with another LiDAR
+    ckpt = tmp_path / "other.pt"
+    torch.save(
+        {"model": IIDSU(cfg).state_dict(), "model_config": cfg.to_dict(), "sensor_config": sensors},
+        ckpt,
+    )
+    argv = ["eval", "--routes", str(route_file), "--out", str(tmp_path / "o")]
+    msg = _error(capsys, argv + ["--policy", f"ckpt:{ckpt}"])
+    assert "other sensors" in msg and "lidar" in msg
+
+
+def test_a_route_file_for_another_network_is_refused(route_file, tmp_path, capsys):
+    _, routes = load_routes(route_file)
+    moved = tmp_path / "moved.json"
+    save_routes([replace(routes[0], network_sha256="0" * 64)], moved, "moved")
+    argv = ["eval", "--policy", "expert", "--routes", str(moved), "--out", str(tmp_path / "o")]
+    assert "another network" in _error(capsys, argv)
+    # a --net route file driven on a different --net
+    other = build_plain_network(
+        [dict(id="A", x=0, y=0), dict(id="B", x=300, y=0)],
+        [{"id": "AB", "from": "A", "to": "B", "numLanes": 1, "speed": 13.89}],
+        tmp_path / "other.net.xml",
+    )
+    net_routes = tmp_path / "net.json"
+    save_routes(
+        [replace(routes[0], town=None, net_path=str(town_net_path("grid_small")))], net_routes, "n"
+    )
+    argv = ["eval", "--policy", "expert", "--routes", str(net_routes), "--net", str(other)]
+    assert "another network" in _error(capsys, argv + ["--out", str(tmp_path / "o")])
+    garbage = tmp_path / "garbage.json"
+    garbage.write_text("{}")
+    argv = ["eval", "--policy", "expert", "--routes", str(garbage), "--out", str(tmp_path / "o")]
+    assert "not a route file" in _error(capsys, argv)
+
+
+def test_drive_routes_writes_reproducible_route_sets_on_any_network(tmp_path, capsys):
+    net = town_net_path("spider")
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    for out in (a, b):
+        assert (
+            cli.main(
+                ["routes", "--net", str(net), "--short", "2", "--long", "1", "--out", str(out)]
+            )
+            == 0
+        )
+    assert a.read_text() == b.read_text()
+    name, routes = load_routes(a)
+    assert [r.kind for r in routes] == ["short", "short", "long"]
+    assert all(100 <= r.length_m <= 500 for r in routes[:2]) and 1000 <= routes[2].length_m <= 2000
+    assert routes[0].town is None and routes[0].net_path == str(net)
+    for r in routes:  # the weather's behaviour, by the data's rule
+        assert (
+            r.behaviour == "cautious"
+            if r.weather in ("rainy", "foggy")
+            else r.behaviour != "cautious"
+        )
+
+
+def test_standard_benchmarks_are_checked_in_and_cover_what_they_promise():
+    from datagen.towns import HELD_OUT_TOWNS, TOWN_NAMES
+    from drive.routes import ROUTES_DIR
+
+    _, train = load_routes(ROUTES_DIR / "training_towns.json")
+    assert {r.town for r in train} == set(TOWN_NAMES)
+    for town in TOWN_NAMES:
+        assert {r.weather for r in train if r.town == town} == {"sunny", "cloudy", "rainy", "foggy"}
+    for name, kind, lo, hi in (
+        ("heldout_short", "short", 100, 500),
+        ("heldout_long", "long", 1000, 2000),
+    ):
+        _, rs = load_routes(ROUTES_DIR / f"{name}.json")
+        assert len(rs) == 10 and {r.town for r in rs} == set(HELD_OUT_TOWNS)
+        assert all(r.kind == kind and lo <= r.length_m <= hi for r in rs)

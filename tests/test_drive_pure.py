@@ -1,0 +1,279 @@
+"""Closed-loop evaluation, the parts that need no SUMO: scoring, PID and kinematics, box
+geometry, and the infraction tracker on scripted ground truth."""
+
+import math
+
+import numpy as np
+import pytest
+import shapely
+
+from datagen.state import AgentState, FrameState, Pose
+from drive import score
+from drive.controller import (
+    Control,
+    Controller,
+    Plan,
+    VehicleConfig,
+    VehicleState,
+    bicycle_step,
+)
+from drive.geometry import RouteGeometry, StopLine
+from drive.infractions import InfractionTracker, time_to_collision
+from drive.layout import Layout, box_corners, boxes_overlap
+
+_NO_DRAG = VehicleConfig(coast_decel_mps2=0.0)
+
+# --- scoring ---------------------------------------------------------------------------------
+
+
+def test_penalties_are_the_leaderboard_table():
+    assert score.PENALTIES == {
+        "collision_pedestrian": 0.50,
+        "collision_vehicle": 0.60,
+        "collision_layout": 0.65,
+        "red_light": 0.70,
+        "stop_sign": 0.80,
+    }
+
+
+def test_driving_score_multiplies_completion_by_penalties_and_off_route_share():
+    s = score.score_route(50.0, {"collision_vehicle": 2, "red_light": 1}, 0.1, 1000.0)
+    assert s.infraction_score == pytest.approx(0.6**2 * 0.7 * 0.9)
+    assert s.ds == pytest.approx(50.0 * 0.6**2 * 0.7 * 0.9)
+    assert s.km_driven == pytest.approx(0.5)
+    clean = score.score_route(99.5, {}, 0.0, 300.0)
+    assert clean.rc == 100.0 and clean.ds == 100.0  # >= 99 % counts as complete
+    assert score.score_route(80.0, {"route_timeout": 1}, 0.0, 300.0).ds == 80.0  # no penalty
+    with pytest.raises(ValueError, match="unknown infraction"):
+        score.score_route(10.0, {"speeding": 1}, 0.0, 100.0)
+
+
+def test_benchmark_ds_is_the_mean_of_route_scores_not_mean_rc_times_mean_is():
+    a = score.score_route(100.0, {"collision_pedestrian": 1}, 0.0, 1000.0)  # DS 50
+    b = score.score_route(20.0, {}, 0.0, 1000.0)  # DS 20
+    s = score.summarise([a, b])
+    assert s.ds == pytest.approx(35.0)
+    assert s.rc * s.is_ / 100 != pytest.approx(s.ds)
+    # per km: 1 event / 1 km and 0 / 0.2 km, averaged over routes
+    assert s.per_km["collision_pedestrian"] == pytest.approx(0.5)
+    assert s.ds_ci > 0 and score.ci95([3.0]) == 0.0
+    table = score.format_table([("x", s)])
+    assert "Ped" in table and "Block" in table and "35.00" in table
+
+
+def test_route_timeout_follows_the_leaderboard_estimate():
+    assert score.route_timeout_s(1000.0) == pytest.approx(5.0 + 0.8 * 1000.0)
+
+
+# --- controller and kinematics ---------------------------------------------------------------
+
+
+def test_bicycle_goes_straight_without_steering_and_turns_left_with_positive_steer():
+    s = VehicleState(Pose(0.0, 0.0, 0.0), 10.0)
+    s1 = bicycle_step(s, Control(0.0, 0.0, False), 0.1)
+    assert s1.pose.y_m == pytest.approx(0.0) and 0.9 < s1.pose.x_m < 1.0
+    left = bicycle_step(s, Control(0.5, 0.0, False), 0.1)
+    assert left.pose.yaw_rad > 0 and left.pose.y_m > 0
+    braked = s
+    for _ in range(30):
+        braked = bicycle_step(braked, Control(0.0, 0.0, True), 0.1)
+    assert braked.speed_mps == 0.0  # never reverses
+
+
+def test_bicycle_circle_radius_matches_the_kinematic_model():
+    # steady turn of the box centre: R = l_r / sin(beta), centre square to the velocity
+    s = VehicleState(Pose(0.0, 0.0, 0.0), 5.0)
+    pts = []
+    for _ in range(400):
+        s = bicycle_step(s, Control(0.3, 0.0, False), 0.05, vehicle=_NO_DRAG)
+        pts.append((s.pose.x_m, s.pose.y_m))
+    pts = np.array(pts)
+    delta = 0.3 * _NO_DRAG.max_steer_rad
+    beta = math.atan(0.5 * math.tan(delta))
+    radius = _NO_DRAG.rear_to_centre_m / math.sin(beta)
+    centre = radius * np.array([-math.sin(beta), math.cos(beta)])
+    r = np.hypot(*(pts - centre).T)
+    assert np.allclose(r, radius, rtol=0.02)
+
+
+def test_pid_tracks_straight_waypoints_to_their_speed():
+    ctrl = Controller()
+    s = VehicleState(Pose(0.0, 0.0, 0.0), 0.0)
+    wps = np.array([[4.0 * t, 0.0] for t in (0.5, 1.0, 1.5, 2.0)])  # 4 m/s straight
+    for _ in range(200):
+        c = ctrl.control(s.pose.ego_from_world(s.pose.world_from_ego(wps)), s.speed_mps)
+        s = bicycle_step(s, c, 0.1)
+    assert s.speed_mps == pytest.approx(4.0, abs=0.5)
+    assert abs(s.pose.y_m) < 1e-6
+
+
+def test_pid_steers_onto_a_lateral_offset_line():
+    ctrl = Controller()
+    s = VehicleState(Pose(0.0, 2.0, 0.0), 6.0)  # 2 m left of the line y = 0
+    for _ in range(150):
+        # waypoints on y = 0 ahead of the ego, 0.5 s apart at 6 m/s
+        x0 = s.pose.x_m
+        world = np.array([[x0 + 3.0 * k, 0.0] for k in (1, 2, 3, 4)])
+        c = ctrl.control(s.pose.ego_from_world(world), s.speed_mps)
+        s = bicycle_step(s, c, 0.1)
+    assert abs(s.pose.y_m) < 0.3 and abs(s.pose.yaw_rad) < 0.1
+
+
+def test_plan_held_in_world_frame_is_transfusers_two_waypoints_when_fresh():
+    pose = Pose(10.0, 5.0, math.pi / 2)
+    wps = np.array([[2.0, 0.0], [4.0, 0.5], [6.0, 1.0], [8.0, 1.5]])
+    plan = Plan.from_ego(3.0, pose, wps)
+    assert np.allclose(plan.at(3.0, pose), wps[:2])
+    # 0.25 s later, from the same pose, the points have moved half a waypoint on
+    later = plan.at(3.25, pose)
+    assert np.allclose(later[0], 0.5 * (wps[0] + wps[1]))
+
+
+# --- geometry --------------------------------------------------------------------------------
+
+
+def test_box_overlap_separating_axes():
+    a = box_corners(0.0, 0.0, 0.0, 4.0, 2.0)
+    b = np.stack(
+        [
+            box_corners(3.9, 0.0, 0.0, 4.0, 2.0),  # overlaps by 0.1 m
+            box_corners(4.1, 0.0, 0.0, 4.0, 2.0),  # 0.1 m apart
+            box_corners(4.0, 3.5, math.pi / 4, 4.0, 2.0),  # diagonal, apart
+            box_corners(2.0, 1.5, math.pi / 4, 4.0, 2.0),  # diagonal, corner inside
+        ]
+    )
+    assert boxes_overlap(a, b).tolist() == [True, False, False, True]
+    ref = [shapely.Polygon(a).intersects(shapely.Polygon(q)) for q in b]
+    assert boxes_overlap(a, b).tolist() == ref
+
+
+def _agent(tid, x, y, yaw=0.0, speed=0.0, cls="vehicle", length=4.5, width=1.8):
+    return AgentState(tid, cls, Pose(x, y, yaw), length, width, 1.5, speed)
+
+
+def test_time_to_collision_of_a_closing_pair_and_none_for_parallel_lanes():
+    ego = _agent("ego", 0.0, 0.0, speed=10.0, length=4.7, width=1.85)
+    ahead = _agent("a", 24.6, 0.0, speed=0.0)  # gap 24.6 - 2.35 - 2.25 = 20 m at 10 m/s
+    assert time_to_collision(ego, [ahead]) == pytest.approx(2.0, abs=0.11)
+    beside = _agent("b", 5.0, 3.5, speed=10.0)
+    assert time_to_collision(ego, [beside]) == math.inf
+
+
+# --- the tracker on scripted ground truth ------------------------------------------------------
+
+
+def _straight_route(length=200.0, lights=(), stops=()):
+    """A route along y = 0 from x = 0 to `length`, a 3.2 m lane, optional stop lines."""
+    xs = np.linspace(0.0, length, 41)
+    centre = np.stack([xs, np.zeros_like(xs)], 1)
+    lane = shapely.LineString(centre).buffer(1.6, cap_style=2)
+    shapely.prepare(lane)
+    lines = [StopLine("light", s, "J", np.array([[s, 1.6], [s, -1.6]])) for s in lights]
+    lines += [StopLine("stop", s, "K", np.array([[s, 1.6], [s, -1.6]])) for s in stops]
+    lines.sort(key=lambda ln: ln.s_m)
+    return RouteGeometry(("e",), centre, xs.copy(), tuple(lines), lane, 1)
+
+
+def _layout():
+    road = [shapely.box(-50, -5, 300, 5)]
+    kerb = [shapely.box(-50, 5, 300, 8), shapely.box(-50, -8, 300, -5)]
+    building = [shapely.box(100, 9, 120, 30)]
+    return Layout(road, kerb, building)
+
+
+def _frame(t, x, y=0.0, yaw=0.0, speed=10.0, agents=(), light="none", light_d=None, stop_d=None):
+    ego = AgentState("ego", "vehicle", Pose(x, y, yaw), 4.7, 1.85, 1.5, speed)
+    return FrameState(
+        time_s=t,
+        ego=ego,
+        agents=tuple(agents),
+        command="follow",
+        target_point_xy_m=(x + 30.0, 0.0),
+        traffic_light=light,
+        light_distance_m=light_d,
+        stop_sign=stop_d is not None,
+        stop_distance_m=stop_d,
+        expert_reason="none",
+    )
+
+
+def _drive(tracker, frames):
+    for f in frames:
+        tracker.step(f)
+        if tracker.ended:
+            break
+    return tracker
+
+
+def test_driving_through_a_red_light_is_one_red_light_infraction():
+    geom = _straight_route(lights=(100.0,))
+    frames = []
+    for k in range(150):  # 10 m/s, front = centre + 2.35 m
+        x = 10.0 + k * 1.0
+        d = 100.0 - (x + 2.35)
+        frames.append(
+            _frame(
+                k * 0.1, x, light="red" if d > -20 else "none", light_d=d if 0 <= d <= 30 else None
+            )
+        )
+    t = _drive(InfractionTracker(geom, _layout()), frames)
+    assert t.counts() == {"red_light": 1}
+    # the same drive on green is clean
+    frames = [
+        _frame(f.time_s, f.ego.pose.x_m, light="green", light_d=f.light_distance_m) for f in frames
+    ]
+    assert _drive(InfractionTracker(geom, _layout()), frames).counts() == {}
+
+
+def test_stop_sign_passed_without_stopping_counts_and_a_full_stop_does_not():
+    geom = _straight_route(stops=(100.0,))
+    rolling = [_frame(k * 0.1, 10.0 + k, speed=10.0) for k in range(150)]
+    assert _drive(InfractionTracker(geom, _layout()), rolling).counts() == {"stop_sign": 1}
+    # stop 1 m before the line (front at 99 m), wait, go on
+    xs = list(np.arange(10.0, 96.65, 1.0)) + [96.65] * 20 + list(np.arange(97.0, 160.0, 1.0))
+    frames = [_frame(k * 0.1, x, speed=0.0 if x == 96.65 else 10.0) for k, x in enumerate(xs)]
+    assert _drive(InfractionTracker(geom, _layout()), frames).counts() == {}
+
+
+def test_hitting_a_stopped_car_is_one_vehicle_collision_however_long_it_lasts():
+    geom = _straight_route()
+    parked = _agent("v1", 60.0, 0.0)
+    frames = [_frame(k * 0.1, min(10.0 + k, 56.0), agents=[parked]) for k in range(80)]
+    t = _drive(InfractionTracker(geom, _layout()), frames)
+    assert t.counts() == {"collision_vehicle": 1}
+    assert t.events[0].detail == "v1"
+    ped = _agent("p1", 60.0, 0.0, cls="pedestrian", length=0.4, width=0.5)
+    frames = [_frame(k * 0.1, min(10.0 + k, 59.0), agents=[ped]) for k in range(80)]
+    assert _drive(InfractionTracker(geom, _layout()), frames).counts() == {
+        "collision_pedestrian": 1
+    }
+
+
+def test_leaving_the_road_is_off_road_and_a_kerb_collision_and_far_off_ends_the_route():
+    geom = _straight_route()
+    frames = []
+    for k in range(200):  # drift left at 30 degrees from x = 20
+        x = 20.0 + k * math.cos(0.5)
+        y = k * math.sin(0.5)
+        frames.append(_frame(k * 0.1, x, y, yaw=0.5))
+    t = _drive(InfractionTracker(geom, _layout()), frames)
+    c = t.counts()
+    assert c["off_road"] == 1 and c["collision_layout"] == 1 and c["route_deviation"] == 1
+    assert t.ended == "route_deviation"
+    assert 0.0 < t.off_road_share < 1.0 and t.off_route_share >= t.off_road_share
+
+
+def test_a_clean_drive_completes_the_route_with_no_infractions():
+    geom = _straight_route(lights=(100.0,))
+    frames = [_frame(k * 0.1, 2.35 + k, light="green", light_d=None) for k in range(300)]
+    t = _drive(InfractionTracker(geom, _layout()), frames)
+    assert t.ended == "route_complete" and t.counts() == {}
+    assert t.route_completion_pct == 100.0
+
+
+def test_standing_still_for_90_s_is_agent_blocked():
+    geom = _straight_route()
+    frames = [_frame(k * 0.1, 20.0, speed=0.0) for k in range(1000)]
+    t = _drive(InfractionTracker(geom, _layout()), frames)
+    assert t.ended == "agent_blocked" and t.counts() == {"agent_blocked": 1}
+    assert t.events[0].time_s == pytest.approx(90.0, abs=0.15)
