@@ -285,15 +285,18 @@ def _build(cfg, out_dir, options: RunOptions, force, runner, progress_bar) -> Bu
         shards.write_json(make_manifest(cfg, plans, done, run), out_dir / MANIFEST)
         shards.remove_temporaries(out_dir)  # the stopped workers' unfinished shards
         n_done = sum(r["rows"] for r in done.values())
-        what = "stopped (SIGTERM)" if isinstance(e, executors.Terminated) else "stopped"
+        sigterm = isinstance(e, executors.Terminated) or executors.sigterm_received()
+        what = "stopped (SIGTERM)" if sigterm else "stopped"
         if isinstance(e, executors.ExecutorError):
-            raise executors.ExecutorError(
+            raise type(e)(
                 f"{e}; stopped with {n_done} of {cfg.frames} frames done; {RESUME}", e.keys
             ) from None
         print(
             f"datagen build: {what} with {n_done} of {cfg.frames} frames done; {RESUME}",
             file=sys.stderr,
         )
+        if sigterm and not isinstance(e, executors.Terminated):
+            raise executors.Terminated() from None
         raise
     finally:
         bar.close()

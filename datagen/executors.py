@@ -42,6 +42,7 @@ import os
 import resource
 import signal
 import sys
+import threading
 import time
 import traceback
 from collections import deque
@@ -126,12 +127,25 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM, raised as KeyboardInterrupt so that one code path stops on either."""
 
 
+_sigterm_received = False
+
+
+def sigterm_received() -> bool:
+    """Whether SIGTERM arrived in the current stop_on_sigterm block (Ray's calls re-raise
+    a KeyboardInterrupt of their own, so the exception's type alone does not tell)."""
+    return _sigterm_received
+
+
 @contextlib.contextmanager
 def stop_on_sigterm():
     """Within the block, SIGTERM raises Terminated (a KeyboardInterrupt) in the main thread;
     a second SIGTERM while stopping is ignored so that the clean-up finishes."""
+    global _sigterm_received
+    _sigterm_received = False
 
     def handler(signum, frame):
+        global _sigterm_received
+        _sigterm_received = True
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         raise Terminated()
 
@@ -544,11 +558,17 @@ class RayExecutor(Executor):
                 kwargs["address"] = address
             else:
                 kwargs["num_cpus"] = self.workers
+            sigterm = signal.getsignal(signal.SIGTERM)
             try:
                 ray.init(**kwargs)
             except (ConnectionError, RuntimeError, ValueError) as e:
                 where = address or "a local instance"
                 raise UserError(f"cannot start Ray on {where}: {str(e).splitlines()[0]}") from None
+            finally:
+                # ray.init installs its own SIGTERM handlers (sys.exit in Python, an abort in its
+                # C++ core); the caller's (stop_on_sigterm) must stay in charge of stopping.
+                if sigterm is not None and threading.current_thread() is threading.main_thread():
+                    signal.signal(signal.SIGTERM, sigterm)
         self.progress = ray.remote(num_cpus=0)(_RayProgress).remote()
         options = {"num_cpus": 1, "max_retries": self.retries, "retry_exceptions": False}
         if self.max_tasks_per_worker:
