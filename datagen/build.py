@@ -151,7 +151,8 @@ class BuildReport:
 
     Attributes:
         peak_rss_mb: {"host:pid": peak resident MB} of every worker process that ran an episode.
-        episode_log: (seconds since start, rows) of each episode this run finished, in order.
+        episode_log: (seconds since start, rows, worker, its peak RSS in MB) of each episode this
+            run finished, in finishing order (bench/soak.py).
     """
 
     manifest: dict
@@ -272,7 +273,9 @@ def _build(cfg, out_dir, options: RunOptions, force, runner, progress_bar) -> Bu
                         report.peak_rss_mb.get(ev.worker, 0.0), ev.peak_rss_mb
                     )
                     report.new_frames += record["rows"]
-                    report.episode_log.append((time.perf_counter() - start, record["rows"]))
+                    report.episode_log.append(
+                        (time.perf_counter() - start, record["rows"], ev.worker, ev.peak_rss_mb)
+                    )
                     done[eid] = {**record, "status": "done"}
                     plans = plan(cfg, done)
                     if time.monotonic() - written >= MANIFEST_EVERY_S:
