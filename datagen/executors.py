@@ -221,6 +221,8 @@ class Executor:
         """Queue one task; `key` (unique among unfinished tasks) names it in events and errors."""
         if key in self._payloads:
             raise ValueError(f"{self.noun} {key} is already submitted")
+        if not self._payloads:  # the idle clock starts with the first waiting task
+            self._last_event = time.monotonic()
         self._payloads[key] = payload
         self._attempts[key] = 0
         self._enqueue(key, payload)

@@ -514,6 +514,9 @@ def test_different_arguments_into_a_built_directory_are_refused(small):
         (["--town", "atlantis"], "unknown town 'atlantis'"),
         (["--towns", "9"], "--towns must be between 1 and 8"),
         (["--weather-mix", "sunny=-1"], "--weather-mix: weight of sunny must be >= 0"),
+        (["--stall-timeout", "0"], "--stall-timeout must be a positive number of seconds"),
+        (["--retries", "-1"], "--retries must be at least 0, got -1"),
+        (["--workers", "0"], "--workers must be at least 1, got 0"),
     ],
 )
 def test_bad_input_is_a_one_line_error(tmp_path, args, message):
