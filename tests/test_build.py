@@ -4,6 +4,7 @@ The first half drives the build machinery with synthetic episodes (tests/synthet
 planning, resume and determinism are pinned without the simulator's cost; the second half runs
 real SUMO episodes through the `datagen` command."""
 
+import functools
 import json
 import os
 import signal
@@ -19,7 +20,7 @@ import pyarrow.dataset as ds
 import pytest
 
 import schemas
-from datagen import build, plan, validate
+from datagen import build, executors, plan, validate
 from datagen.errors import UserError
 from datagen.manifest import LOCK, MANIFEST, BuildLock
 from tests.synthetic import synthetic_table
@@ -51,13 +52,38 @@ def fake_runner(spec, sensors, progress):
         time.sleep(delay)
         if progress:
             progress(1)
-    table = synthetic_table(rows, spec.episode_id, spec.town, spec.weather, spec.seed % 1000)
+    seed = spec.seed % 1000
+    # flat images: a few ms an episode, so that tests can build hundreds of them
+    table = synthetic_table(rows, spec.episode_id, spec.town, spec.weather, seed, noise=False)
     i = table.schema.get_field_index("behaviour")
-    table = table.set_column(i, table.schema.field(i), pa.array([spec.behaviour] * rows))
+    field = table.schema.field(i)
+    behaviour = pa.array([spec.behaviour] * rows, pa.string()).cast(field.type)
+    table = table.set_column(i, field, behaviour)
     sha = {t.name: t.network_sha256 for t in FAKE_TOWNS}[spec.town]
     meta = {**table.schema.metadata, schemas.META_NETWORK_HASH.encode(): sha.encode()}
     table = table.replace_schema_metadata(meta)
     return FakeResult(table, "route_end" if early else None, {"collisions": 0, "teleports": 0})
+
+
+def killing_runner(spec, sensors, progress, kill: str = "", marker_dir: str | None = None):
+    """fake_runner, but the worker running episode `kill` SIGKILLs itself mid-episode: on every
+    attempt, or (`marker_dir`) on the first attempt only."""
+    if spec.episode_id == kill:
+        marker = Path(marker_dir or "/nonexistent") / f"{kill}.killed"
+        if marker_dir is None or not marker.exists():
+            if marker_dir is not None:
+                marker.touch()
+            progress(1)
+            os.kill(os.getpid(), signal.SIGKILL)
+    return fake_runner(spec, sensors, progress)
+
+
+def stalling_runner(spec, sensors, progress, stall: str = ""):
+    """fake_runner, but episode `stall` hangs (a deadlock in the simulator, say)."""
+    if spec.episode_id == stall:
+        progress(1)
+        time.sleep(3600)
+    return fake_runner(spec, sensors, progress)
 
 
 def failing_runner(spec, sensors, progress):
@@ -78,12 +104,15 @@ def fake_build(out, workers=2, **kw):
     )
 
 
-def fake_build_main(out: str, workers: str) -> None:
-    """Entry point of the subprocess builds (kill -9, Ctrl-C), exiting as `datagen` does."""
-    try:
-        fake_build(out, int(workers))
-    except KeyboardInterrupt:
-        sys.exit(130)
+def fake_build_main(out: str, workers: str, executor: str = "process") -> None:
+    """Entry point of the subprocess builds (kill -9, Ctrl-C, SIGTERM): the `datagen build`
+    command line itself, with the synthetic config and runner in place of SUMO's."""
+    from datagen import cli
+
+    build.config_from_args = lambda args: fake_config()
+    build.build = functools.partial(build.build, runner=fake_runner)
+    argv = ["build", "--out", out, "--workers", workers, "--executor", executor, "--no-progress"]
+    sys.exit(cli.main(argv))
 
 
 def _content(out: Path) -> dict:
@@ -92,6 +121,14 @@ def _content(out: Path) -> dict:
     manifest.pop("run")
     files = {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*.parquet"))}
     return {"manifest": manifest, "files": files}
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory) -> dict:
+    """_content of the uninterrupted fake_build() that every interrupted one must equal."""
+    out = tmp_path_factory.mktemp("reference") / "data"
+    fake_build(out)
+    return _content(out)
 
 
 def test_plan_splits_the_budget_across_towns_and_weathers_deterministically():
@@ -183,8 +220,7 @@ def test_dataset_does_not_depend_on_worker_count(tmp_path):
     assert _content(tmp_path / "one") == _content(tmp_path / "two")
 
 
-def test_rerun_keeps_finished_episodes_and_adopts_unrecorded_shards(tmp_path):
-    fake_build(tmp_path / "ref")
+def test_rerun_keeps_finished_episodes_and_adopts_unrecorded_shards(tmp_path, reference):
     out = tmp_path / "out"
     fake_build(out)
     manifest = json.loads((out / MANIFEST).read_text())
@@ -200,7 +236,7 @@ def test_rerun_keeps_finished_episodes_and_adopts_unrecorded_shards(tmp_path):
     report = fake_build(out)
     # only the missing and the damaged episodes were redone
     assert report.new_frames == recorded[1]["rows"] + recorded[2]["rows"]
-    assert _content(out) == _content(tmp_path / "ref")
+    assert _content(out) == reference
 
 
 def test_different_arguments_are_refused_unless_forced(tmp_path):
@@ -248,13 +284,13 @@ def test_foreign_parquet_files_are_never_touched(tmp_path):
         (tmp_path / name).rename(tmp_path / f"_{name.replace('/', '_')}")  # hidden from readers
 
 
-def _spawn_fake_build(out: Path, env_extra: dict) -> subprocess.Popen:
+def _spawn_fake_build(out: Path, env_extra: dict, executor: str = "process") -> subprocess.Popen:
     code = (
         "import sys; from tests.test_build import fake_build_main; fake_build_main(*sys.argv[1:])"
     )
     env = {**os.environ, **env_extra}
     return subprocess.Popen(
-        [sys.executable, "-c", code, str(out), "2"],
+        [sys.executable, "-c", code, str(out), "2", executor],
         cwd=ROOT,
         env=env,
         stdout=subprocess.PIPE,
@@ -271,21 +307,20 @@ def _wait_for_shards(out: Path, n: int, proc: subprocess.Popen, timeout_s: float
         time.sleep(0.05)
 
 
-def test_sigkill_then_rerun_equals_an_uninterrupted_build(tmp_path):
-    fake_build(tmp_path / "ref")
+def test_sigkill_then_rerun_equals_an_uninterrupted_build(tmp_path, reference):
     out = tmp_path / "out"
     proc = _spawn_fake_build(out, {"FAKE_FRAME_SECONDS": "0.02"})
     _wait_for_shards(out, 3, proc)
     os.killpg(proc.pid, signal.SIGKILL)  # the build and its workers, mid-episode
     proc.wait()
     partial = len(list(out.glob("*/*.parquet")))
-    assert 3 <= partial < len(list((tmp_path / "ref").glob("*/*.parquet")))
+    assert 3 <= partial < len(reference["files"])
     report = fake_build(out)
     assert 0 < report.new_frames < 96
-    assert _content(out) == _content(tmp_path / "ref")
+    assert _content(out) == reference
 
 
-def test_ctrl_c_stops_cleanly_and_the_rerun_finishes(tmp_path):
+def test_ctrl_c_stops_cleanly_and_the_rerun_finishes(tmp_path, reference):
     out = tmp_path / "out"
     proc = _spawn_fake_build(out, {"FAKE_FRAME_SECONDS": "0.15"})  # 2.4 s an episode
     _wait_for_shards(out, 2, proc)
@@ -298,8 +333,92 @@ def test_ctrl_c_stops_cleanly_and_the_rerun_finishes(tmp_path):
     assert "Traceback" not in stderr.decode()
     assert list(out.rglob("_*.tmp")) == []
     fake_build(out)
-    fake_build(tmp_path / "ref")
-    assert _content(out) == _content(tmp_path / "ref")
+    assert _content(out) == reference
+
+
+def test_hundreds_of_episodes_over_two_workers_complete_with_the_exact_row_count(tmp_path):
+    # 2-frame episodes: the build that hung after 2 workers x 50 episodes (issue 11)
+    cfg = fake_config(frames=600, episode_seconds=1.0)
+    report = build.build(cfg, tmp_path, workers=2, runner=fake_runner, progress_bar=False)
+    m = report.manifest
+    assert m["status"] == "complete" and m["statistics"]["frames"] == 600
+    assert len(pd.read_parquet(tmp_path, columns=["frame"])) == 600
+    episodes = m["statistics"]["episodes"]
+    assert episodes == len(m["episodes"]) > 300  # 300 planned, and the top-up rounds
+    # workers were recycled (50 episodes each) and replaced, and none was left waiting
+    assert len(report.peak_rss_mb) >= episodes // executors.MAX_TASKS_PER_WORKER
+    assert len(report.episode_log) == episodes
+
+
+def test_a_worker_killed_mid_episode_is_retried_and_the_dataset_is_exact(
+    tmp_path, capsys, reference
+):
+    runner = functools.partial(killing_runner, kill="alpha-7-0003", marker_dir=str(tmp_path))
+    out = tmp_path / "out"
+    build.build(fake_config(), out, workers=2, runner=runner, progress_bar=False)
+    assert "episode alpha-7-0003: its worker was killed by SIGKILL; retrying" in (
+        capsys.readouterr().err
+    )
+    assert _content(out) == reference
+
+
+def test_a_worker_that_always_dies_stops_the_build_clearly_and_the_rerun_is_exact(
+    tmp_path, reference
+):
+    out = tmp_path / "out"
+    runner = functools.partial(killing_runner, kill="beta-7-0002")
+    options = build.RunOptions(workers=2, retries=1)
+    with pytest.raises(UserError) as e:
+        build.build(fake_config(), out, runner=runner, progress_bar=False, options=options)
+    message = str(e.value)
+    assert message.startswith("episode beta-7-0002: its worker was killed by SIGKILL, on each")
+    assert message.endswith(build.RESUME) and "\n" not in message
+    manifest = json.loads((out / MANIFEST).read_text())
+    assert manifest["status"] == "building"
+    assert all((out / r["file"]).exists() for r in manifest["episodes"] if r.get("file"))
+    assert fake_build(out).new_frames < 96  # the finished episodes were kept
+    assert _content(out) == reference
+
+
+def test_a_stalled_episode_hits_the_watchdog_and_the_rerun_is_exact(tmp_path, reference):
+    out = tmp_path / "out"
+    runner = functools.partial(stalling_runner, stall="alpha-7-0002")
+    options = build.RunOptions(workers=2, stall_s=2.0)
+    t0 = time.monotonic()
+    with pytest.raises(UserError, match=r"^episode alpha-7-0002 made no progress for 2 s"):
+        build.build(fake_config(), out, runner=runner, progress_bar=False, options=options)
+    assert time.monotonic() - t0 < 60
+    assert list(out.rglob("_*.tmp")) == []
+    fake_build(out)
+    assert _content(out) == reference
+
+
+@pytest.mark.parametrize("executor", ["process", "ray"])
+def test_sigterm_stops_like_ctrl_c_and_the_rerun_finishes(tmp_path, executor, reference):
+    if executor == "ray":
+        pytest.importorskip("ray", reason="ray is not installed (pip install 'iidsu[ray]')")
+    out = tmp_path / "out"
+    proc = _spawn_fake_build(out, {"FAKE_FRAME_SECONDS": "0.15"}, executor)
+    _wait_for_shards(out, 2, proc, timeout_s=120)
+    proc.send_signal(signal.SIGTERM)  # the build alone, as `timeout` or a batch scheduler does
+    _, stderr = proc.communicate(timeout=60)
+    stderr = stderr.decode()
+    assert proc.returncode == 128 + signal.SIGTERM, stderr
+    assert "datagen build: stopped (SIGTERM) with" in stderr and build.RESUME in stderr
+    assert "Traceback" not in stderr
+    assert list(out.rglob("_*.tmp")) == []
+    assert json.loads((out / MANIFEST).read_text())["status"] == "building"
+    fake_build(out)
+    assert _content(out) == reference
+
+
+def test_ray_retries_a_killed_worker_and_equals_the_process_build(tmp_path, reference):
+    pytest.importorskip("ray", reason="ray is not installed (pip install 'iidsu[ray]')")
+    runner = functools.partial(killing_runner, kill="alpha-7-0003", marker_dir=str(tmp_path))
+    out = tmp_path / "out"
+    build.build(fake_config(), out, workers=2, executor="ray", runner=runner, progress_bar=False)
+    assert (tmp_path / "alpha-7-0003.killed").exists()
+    assert _content(out) == reference
 
 
 # --------------------------------------------------------------------------------------------
@@ -395,6 +514,9 @@ def test_different_arguments_into_a_built_directory_are_refused(small):
         (["--town", "atlantis"], "unknown town 'atlantis'"),
         (["--towns", "9"], "--towns must be between 1 and 8"),
         (["--weather-mix", "sunny=-1"], "--weather-mix: weight of sunny must be >= 0"),
+        (["--stall-timeout", "0"], "--stall-timeout must be a positive number of seconds"),
+        (["--retries", "-1"], "--retries must be at least 0, got -1"),
+        (["--workers", "0"], "--workers must be at least 1, got 0"),
     ],
 )
 def test_bad_input_is_a_one_line_error(tmp_path, args, message):
