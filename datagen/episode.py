@@ -12,8 +12,8 @@ become rows. If the world ends early (route end, teleport, blocked ego) the fram
 full future are dropped and the table holds fewer than n_frames rows.
 
 Per frame (timed per stage in `stats["timing"]`): sim (SUMO steps to the next recorded state),
-scene (the agents' boxes and their Embree scene; the culled static scene again whenever the
-ego has moved SceneBuilder.REBUILD_M), lidar (sweep + BEV histogram),
+scene (the agents' boxes and their Embree scene; the culled static scene of the ego's cell,
+committed once per process: datagen/raycast.py), lidar (sweep + BEV counts),
 camera, labels (BEV semantic raster, boxes, waypoints), encode (JPEG, PNGs).
 """
 

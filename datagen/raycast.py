@@ -1,21 +1,21 @@
 """Ray casting with Embree: one frame's scene (a culled static part kept across frames, and
 this frame's actors) and the world-frame rays of a sensor.
 
-Whole towns. A town of up to WHOLE_TOWN_MAX_TRIANGLES is committed once per worker process and
-reused by every episode there (`town_embree`): no BVH build per episode, none as the ego drives.
-
-Culling (larger towns). datagen/scene.py sorts the static triangles into square tiles (TILE_M) by centroid;
-each tile knows how far its triangles reach from its centre. A frame's static Embree scene holds only the tiles within the
-sensors' reach (the camera's 150 m plus its mount) plus SceneBuilder.REBUILD_M, so the cost per
-frame does not grow with the town.
+Culling. datagen/scene.py sorts the static triangles into square tiles (TILE_M) by centroid;
+each tile knows how far its triangles reach from its centre. The town is cut into CELL_M cells;
+a cell's static Embree scene holds the tiles within the sensors' reach (the camera's 150 m plus
+its mount) of any point of the cell, so the cost per frame does not grow with the town, and it
+is committed once per worker process and reused by every episode that drives through the cell.
+Measured: one Embree scene of a whole town instead traverses 12% slower on grid_small (51k
+triangles) and 27% slower on random_city (221k) than a culled one, for the same hits.
 
 Two Embree scenes per frame, not one. One scene per frame (culled static + actor boxes) was the
 first design, but embreex's `TriangleMesh` copies vertices into Embree one coordinate at a time through
 Python-level indexing: ~1.1 us per triangle (6.4k triangles: 6.5 ms; the 13-22k static triangles
 within reach: 15-20 ms CPU per commit, measured on this 2-core box), which alone would eat a
-third of the 50 ms frame budget. So the static scene is committed once and kept until the ego
-has moved REBUILD_M (60 m: 15-20 ms per rebuild, ~1.4 ms per frame at 10 m/s; 40 m costs 0.38
-ms per metre driven, 60 m 0.27, 80 m 0.23 with a bigger scene to traverse), and the agents get
+third of the 50 ms frame budget. So the static scene is committed once per cell (60 m: 15-20 ms
+per commit, ~1.4 ms per frame at 10 m/s while the process cache is cold; 40 m costs 0.38 ms per
+metre driven, 60 m 0.27, 80 m 0.23 with a bigger scene to traverse), and the agents get
 their own small scene each frame (~1k triangles, <1 ms). Every sensor ray is cast into the static
 scene; only the rays that can hit an agent (LiDAR: its box's elevation x azimuth window, ~3k of
 64k rays; camera: its bounding sphere's projected rectangle) are cast again into the actor scene,
@@ -221,62 +221,64 @@ class FrameScene:
         return hit
 
 
-WHOLE_TOWN_MAX_TRIANGLES = 150_000
-"""Towns up to this size are committed whole, once per process; larger ones are culled. Measured
-(this 2-core box, loaded): a whole-town commit costs ~4 us a triangle once (66k: ~0.15 s; 221k
-and 249k: ~1 s), a culled one ~50 ms per REBUILD_M driven (~4 per 60-frame episode). So a small
-town (grid_small, downtown, spider, arterial, roundabout: 51-73k) is cheaper whole from the
-first episode, a large one (random_city, suburb, mixed) only after several episodes per worker.
-Both give the same hits (checked byte for byte on downtown, random_city and mixed)."""
-TOWN_CACHE_SIZE = 8  # committed towns kept per process (all built-in towns)
+CELL_M = 60.0
+"""The town is cut into square cells of this side; the static Embree scene of a cell holds every
+tile within the sensors' reach of any point in it, so it serves the ego anywhere in the cell."""
+CELL_CACHE_SIZE = 64  # committed cell scenes kept per process (LRU): ~3 MB each
 
-_towns: OrderedDict[int, tuple[weakref.ref, object]] = OrderedDict()
-town_commits = 0  # how many whole-town scenes this process has committed (tests, bench)
+_cells: OrderedDict[tuple, tuple] = OrderedDict()
+cell_commits = 0  # how many cell scenes this process has committed (tests, bench)
 
 
-def town_embree(static: StaticScene):
-    """The committed Embree scene of a whole town (primitive id = row of static.triangles_m),
-    built on first use and kept per process (LRU of TOWN_CACHE_SIZE towns), so every episode in
-    a worker reuses it: no per-episode BVH build and no rebuild as the ego drives."""
-    global town_commits
-    key = id(static)
-    hit = _towns.get(key)
+def _cell_scene(static: StaticScene, cell: tuple[int, int], radius_m: float, tiles_fn) -> tuple:
+    """(embree scene, normals, colour, material, tag) of the static tiles within `radius_m` of
+    cell `cell`'s centre, built on first use and kept per process (LRU), so every episode in a
+    worker that drives through the cell reuses it."""
+    global cell_commits
+    key = (id(static), cell, radius_m)
+    hit = _cells.get(key)
     if hit is not None and hit[0]() is static:
-        _towns.move_to_end(key)
+        _cells.move_to_end(key)
         return hit[1]
-    scene = _embree_scene(static.triangles_m)
-    town_commits += 1
-    _towns[key] = (weakref.ref(static), scene)
-    while len(_towns) > TOWN_CACHE_SIZE:
-        _towns.popitem(last=False)
-    return scene
+    st = static
+    centre = (np.asarray(cell, np.float64) + 0.5) * CELL_M
+    tiles = tiles_fn(centre, radius_m)
+    starts, ends = st.tile_start[tiles], st.tile_start[tiles + 1]
+    lens = ends - starts
+    idx = np.repeat(starts - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens)
+    idx += np.arange(int(lens.sum()))
+    part = (
+        _embree_scene(st.triangles_m[idx]),
+        st.normals[idx],
+        st.colour_rgb[idx],
+        st.material[idx],
+        st.tag[idx],
+    )
+    cell_commits += 1
+    _cells[key] = (weakref.ref(static), part)
+    while len(_cells) > CELL_CACHE_SIZE:
+        _cells.popitem(last=False)
+    return part
 
 
 class SceneBuilder:
     """Builds each frame's `FrameScene` from a static scene.
 
-    A town of at most WHOLE_TOWN_MAX_TRIANGLES is one static Embree scene per process
-    (`town_embree`). A larger one is culled: the static Embree scene holds every tile within
-    `reach_m` + REBUILD_M of the ego and is rebuilt only when the ego has moved REBUILD_M from
-    where it was built, so the sensors' reach (`reach_m`: the longer of the LiDAR and camera
-    ranges, plus the mounts' offset) is always covered. Both give the same hits: every triangle
-    a ray can reach is in either scene. The actor scene is built every frame from the agents
-    within reach (never the ego).
+    Static part: the Embree scene of the CELL_M cell the ego is in, holding every tile within
+    `reach_m` (the longer of the LiDAR and camera ranges, plus the mounts' offset) of any point
+    of the cell, so the sensors' reach is always covered; cell scenes are committed once per
+    process and reused by later frames and episodes (`_cell_scene`). The actor scene is built
+    every frame from the agents within reach (never the ego).
     """
 
-    REBUILD_M = 60.0  # measured trade-off, see the module docstring
-
-    def __init__(
-        self, static: StaticScene, reach_m: float, whole_town_max: int = WHOLE_TOWN_MAX_TRIANGLES
-    ):
+    def __init__(self, static: StaticScene, reach_m: float):
         self.static = static
         self.reach_m = reach_m
-        self.whole_town = static.n_triangles <= whole_town_max
         self._centres = static.tile_centres_m()
         self._nonempty = np.diff(static.tile_start) > 0
-        self._built_at: np.ndarray | None = None
+        self._cell: tuple[int, int] | None = None
         self._static = None
-        self.rebuilds = 0  # culled static scenes built (0 for a whole town)
+        self.rebuilds = 0  # cell changes (a cached cell costs no commit: see cell_commits)
 
     def visible_tiles(self, xy_m: np.ndarray, radius_m: float) -> np.ndarray:
         """Indices of the non-empty tiles holding a triangle within radius_m of xy_m."""
@@ -285,26 +287,11 @@ class SceneBuilder:
         return np.flatnonzero((r <= radius_m + self.static.tile_reach_m) & self._nonempty)
 
     def _static_part(self, pose: Pose):
-        st = self.static
-        if self.whole_town:
-            if self._static is None:
-                self._static = (town_embree(st), st.normals, st.colour_rgb, st.material, st.tag)
-            return self._static
-        xy = np.array([pose.x_m, pose.y_m])
-        if self._built_at is None or np.hypot(*(xy - self._built_at)) > self.REBUILD_M:
-            tiles = self.visible_tiles(xy, self.reach_m + self.REBUILD_M)
-            starts, ends = st.tile_start[tiles], st.tile_start[tiles + 1]
-            lens = ends - starts
-            idx = np.repeat(starts - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens)
-            idx += np.arange(int(lens.sum()))
-            self._static = (
-                _embree_scene(st.triangles_m[idx]),
-                st.normals[idx],
-                st.colour_rgb[idx],
-                st.material[idx],
-                st.tag[idx],
-            )
-            self._built_at = xy
+        cell = (math.floor(pose.x_m / CELL_M), math.floor(pose.y_m / CELL_M))
+        if cell != self._cell:
+            radius = self.reach_m + CELL_M / math.sqrt(2.0) + 1e-3  # centre to corner
+            self._static = _cell_scene(self.static, cell, radius, self.visible_tiles)
+            self._cell = cell
             self.rebuilds += 1
         return self._static
 

@@ -796,7 +796,7 @@ def load_static_scene(net_path: Path | str, cache_dir: Path | None = None) -> St
         part = path.with_name(f".{path.stem}.{os.getpid()}.part.npz")
         np.savez(part, **_to_arrays(scene))
         os.replace(part, path)
-    _loaded[key] = scene  # kept, so that raycast.town_embree reuses its Embree scene too
+    _loaded[key] = scene  # kept, so that raycast reuses its cell scenes across episodes
     while len(_loaded) > LOADED_TOWNS:
         _loaded.popitem(last=False)
     return scene

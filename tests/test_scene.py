@@ -237,25 +237,26 @@ def test_frame_scene_excludes_the_ego_and_far_agents():
     far = agent_at("far", 400.0, 0.0)
     fs = SceneBuilder(st, reach_m=100.0).build(frame_at(agents=(near, far)))
     assert [a.track_id for a in fs.agents] == ["near"]
-    assert (fs.actors.actor == 0).all() and fs.n_static == st.n_triangles
+    assert (fs.actors.actor == 0).all()
 
 
-def test_a_town_is_committed_once_per_process_and_reused_across_episodes():
+def test_cell_scenes_are_committed_once_per_process_and_reused_across_episodes():
     st = flat_scene()
-    before = raycast.town_commits
+    before = raycast.cell_commits
     for _episode in range(3):
         builder = SceneBuilder(st, reach_m=100.0)
-        for k in range(3):
-            builder.build(frame_at(Pose(EGO_POSE.x_m + 70 * k, EGO_POSE.y_m, 0.0)))
-        assert builder.rebuilds == 0
-    assert raycast.town_commits == before + 1
+        for k in range(3):  # three cells apart
+            builder.build(frame_at(Pose(EGO_POSE.x_m + raycast.CELL_M * k, EGO_POSE.y_m, 0.0)))
+        assert builder.rebuilds == 3
+    assert raycast.cell_commits == before + 3
 
 
-def test_culled_static_scene_is_reused_until_the_ego_moves_away():
+def test_static_scene_is_reused_until_the_ego_leaves_its_cell():
     st = flat_scene()
-    builder = SceneBuilder(st, reach_m=100.0, whole_town_max=0)
-    builder.build(frame_at(Pose(EGO_POSE.x_m, EGO_POSE.y_m, 0.0)))
-    builder.build(frame_at(Pose(EGO_POSE.x_m + 10, EGO_POSE.y_m, 1.0)))
+    builder = SceneBuilder(st, reach_m=100.0)
+    x0 = (math.floor(EGO_POSE.x_m / raycast.CELL_M) + 0.1) * raycast.CELL_M
+    builder.build(frame_at(Pose(x0, EGO_POSE.y_m, 0.0)))
+    first = builder.build(frame_at(Pose(x0 + 10, EGO_POSE.y_m, 1.0)))
     assert builder.rebuilds == 1
-    builder.build(frame_at(Pose(EGO_POSE.x_m + SceneBuilder.REBUILD_M + 1, EGO_POSE.y_m, 0.0)))
-    assert builder.rebuilds == 2
+    moved = builder.build(frame_at(Pose(x0 + raycast.CELL_M, EGO_POSE.y_m, 0.0)))
+    assert builder.rebuilds == 2 and moved.static_embree is not first.static_embree
