@@ -117,6 +117,10 @@ class TrainConfig:
     lambda_m: float = 0.2
     lambda_tf: float = 0.1
     lambda_wc: float = 0.1
+    # Cross-entropy weights of the BEV classes (other, drivable, lane marking): ours. Markings
+    # are ~8 % of the pixels at R = 64 (3 % at 256; measured on an 8-town build), and with equal
+    # weights the tiny model never predicted them on a held-out town (lane IoU 0.00).
+    bev_class_weights: tuple[float, ...] = (1.0, 1.0, 3.0)
     alpha: float = 1.0
     beta: float = 1.0
     gamma: float = 1.0

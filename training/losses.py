@@ -5,7 +5,8 @@
 
 L_wp: L1 between predicted and expert waypoints. L_heat: CenterNet's penalty-reduced focal loss
 (a cross-entropy that down-weights easy negatives and pixels near a centre), L_reg: smooth L1 at
-object centres. L_M, L_wc: cross-entropy. L_light, L_sign: binary cross-entropy. A head switched
+object centres. L_M: cross-entropy with class weights (`TrainConfig.bev_class_weights`, thin
+lane markings weigh more). L_wc: cross-entropy. L_light, L_sign: binary cross-entropy. A head switched
 off (an ablation) has no output, so its term is absent from the sum. Every term is computed in
 float32, also under bf16 autocast.
 """
@@ -86,7 +87,8 @@ def compute_losses(
         terms["det"] = cfg.alpha * terms["heat"] + cfg.beta * terms["reg"]
         total = total + cfg.lambda_o * terms["det"]
     if "bev" in out:
-        terms["bev"] = F.cross_entropy(out["bev"].float(), batch["bev"].long())
+        weight = torch.tensor(cfg.bev_class_weights, device=out["bev"].device)
+        terms["bev"] = F.cross_entropy(out["bev"].float(), batch["bev"].long(), weight=weight)
         total = total + cfg.lambda_m * terms["bev"]
     if "traffic" in out:
         logits = out["traffic"].float()

@@ -1,0 +1,162 @@
+"""Does II-DSU learn the scene? The issue-13 check: build 8 towns, train the tiny config with one
+town held out, and score the held-out town. Prints figures and the goals; asserts nothing.
+
+    python bench/learn.py                                  # 2,880 frames, 6 epochs (~25 min)
+    python bench/learn.py --frames 8000 --epochs 10 --out runs/learn8k
+    python bench/learn.py --data /tmp/d8 --reuse           # train again on an existing build
+    python bench/learn.py --eval-only runs/learn --compare old.eval.json   # table only
+
+Steps (each a real command, so the figures are what a user gets):
+1. `datagen build --towns 8 --frames F --seed S --out DATA` unless DATA already holds a
+   complete build (with --reuse);
+2. `train fit --shards DATA --config tiny --epochs E --val-towns TOWN --out OUT`;
+3. `train eval --ckpt OUT/last.pt --shards DATA --split val` (the held-out town).
+
+The table: ADE/FDE of the model and of the constant-velocity baseline (goal: model ADE below
+0.8x the baseline's), weather accuracy (goal >= 95 %), red-light F1 (>= 0.8), BEV IoU per class
+(lane marking > 0), detection AP per timestep; then the per-epoch validation metrics from
+OUT/metrics.jsonl, the build's frames (goal <= 20k) and the training wall time (goal <= 1 h on
+a 2-core machine). `--compare JSON` adds a column from another `train eval` JSON (e.g. the
+same check on an older commit).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+GOALS = {"ade_ratio": 0.8, "weather": 0.95, "red_light_f1": 0.8, "lane_iou": 0.0}
+
+
+def _run(args: list[str]) -> float:
+    """Run a project command (python -m ...) with this checkout first on the path; its wall s."""
+    env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    print("$", " ".join(args), flush=True)
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", *args], check=True, env=env, cwd=ROOT)
+    return time.perf_counter() - t0
+
+
+def _built(data: Path) -> int:
+    """Frames of a complete build in `data`, else 0."""
+    manifest = data / "_manifest.json"
+    if not manifest.is_file():
+        return 0
+    m = json.loads(manifest.read_text())
+    return int(m["statistics"]["frames"]) if m.get("status") == "complete" else 0
+
+
+def headline(result: dict) -> dict:
+    """The goal figures of a `train eval` JSON."""
+    p, cv = result["planning"], result["constant_velocity"]
+    out = {
+        "ade_m": p["ade_m"],
+        "fde_m": p["fde_m"],
+        "cv_ade_m": cv["ade_m"],
+        "cv_fde_m": cv["fde_m"],
+        "ade_ratio": p["ade_m"] / cv["ade_m"],
+    }
+    if "weather" in result:
+        out["weather"] = result["weather"]["accuracy"]
+    if "traffic" in result:
+        out["red_light_f1"] = result["traffic"]["red_light"]["f1"]
+        out["stop_sign_f1"] = result["traffic"]["stop_sign"]["f1"]
+    if "bev" in result:
+        out.update({f"iou_{c}": v for c, v in result["bev"]["iou"].items()})
+        out["miou"] = result["bev"]["miou"]
+        out["lane_iou"] = result["bev"]["iou"]["lane_marking"]
+    for t, aps in result.get("detection", {}).items():
+        out[f"det_map_{t}"] = aps["map"]
+    return out
+
+
+def _fmt(v) -> str:
+    return "n/a" if v is None else f"{v:.3f}"
+
+
+def _goal(key: str, v) -> str:
+    if key not in GOALS or v is None:
+        return ""
+    ok = v < GOALS[key] if key == "ade_ratio" else (v > 0 if key == "lane_iou" else v >= GOALS[key])
+    rule = {"ade_ratio": "< 0.8", "lane_iou": "> 0"}.get(key, f">= {GOALS[key]}")
+    return f"goal {rule}: {'met' if ok else 'MISSED'}"
+
+
+def table(result: dict, compare: dict | None) -> str:
+    now = headline(result)
+    old = headline(compare) if compare else {}
+    lines = [f"held-out frames: {result['frames']}", ""]
+    head = f"{'':<20}{'this run':>10}" + (f"{'compare':>10}" if compare else "")
+    lines.append(head)
+    for k, v in now.items():
+        row = f"{k:<20}{_fmt(v):>10}" + (f"{_fmt(old.get(k)):>10}" if compare else "")
+        lines.append(f"{row}   {_goal(k, v)}")
+    return "\n".join(lines)
+
+
+def epochs_table(run: Path) -> str:
+    lines = [
+        "",
+        "per epoch (held-out town):",
+        "epoch  train   val    ADE    CV ADE  weather  red F1  lane IoU",
+    ]
+    path = run / "metrics.jsonl"
+    for m in map(json.loads, path.read_text().splitlines() if path.is_file() else []):
+        v = m.get("val_metrics", {})
+        lines.append(
+            f"{m['epoch']:>5}  {m['train']['total']:.3f}  {m['val'].get('total', 0):.3f}  "
+            f"{_fmt(v.get('ade_m')):>6} {_fmt(v.get('cv_ade_m')):>7}  "
+            f"{_fmt(v.get('weather_accuracy')):>7}  {_fmt(v.get('red_light_f1')):>6}  "
+            f"{_fmt(v.get('iou_lane_marking')):>8}"
+        )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=ROOT / "runs" / "learn-data")
+    parser.add_argument("--frames", type=int, default=2880, help="frames to build (<= 20k)")
+    parser.add_argument("--seed", type=int, default=21)
+    parser.add_argument("--val-town", default="arterial")
+    parser.add_argument("--epochs", type=int, default=6)
+    parser.add_argument("--workers", type=int, default=2, help="build processes")
+    parser.add_argument("--out", type=Path, default=ROOT / "runs" / "learn")
+    parser.add_argument("--reuse", action="store_true", help="keep a complete build in --data")
+    parser.add_argument("--eval-only", type=Path, metavar="RUN", help="print RUN's table only")
+    parser.add_argument("--compare", type=Path, metavar="JSON", help="another eval JSON")
+    parser.add_argument("--fit-arg", action="append", default=[], help="extra train fit flag")
+    args = parser.parse_args()
+
+    run, fit_s = args.eval_only, None
+    if run is None:
+        run = args.out
+        if not (args.reuse and _built(args.data)):
+            build = ["datagen.cli", "build", "--towns", "8", "--frames", str(args.frames)]
+            build += ["--seed", str(args.seed), "--workers", str(args.workers), "--force"]
+            _run([*build, "--out", str(args.data), "--no-progress"])
+        fit = ["training.cli", "fit", "--shards", str(args.data), "--config", "tiny"]
+        fit += ["--epochs", str(args.epochs), "--val-towns", args.val_town, "--out", str(run)]
+        fit_s = _run([*fit, "--device", "cpu", *args.fit_arg])
+        ev = ["training.cli", "eval", "--ckpt", str(run / "last.pt"), "--shards", str(args.data)]
+        _run([*ev, "--split", "val", "--device", "cpu", "--out", str(run / "eval.json")])
+    result = json.loads((run / "eval.json").read_text())
+    compare = json.loads(args.compare.read_text()) if args.compare else None
+    print()
+    print(table(result, compare))
+    print(epochs_table(run))
+    if fit_s is not None:
+        frames = _built(args.data)
+        print(
+            f"\nbuild: {frames} frames (goal <= 20000); train fit: {fit_s / 60:.1f} min "
+            f"(goal <= 60 on 2 cores; this machine is shared, so wall time is an upper bound)"
+        )
+
+
+if __name__ == "__main__":
+    main()
