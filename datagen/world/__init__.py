@@ -1,0 +1,71 @@
+"""The driving world: SUMO stepped in-process, traffic around an expert-driven ego.
+
+Modules (data flows down):
+    fleet.py        road-user types and box sizes
+    sumo.py         the only module that calls libsumo; typed snapshots and commands
+    route.py        route ahead, command, target point, signals: pure geometry
+    perception.py   the ego's obstacles and who holds it back: pure
+    traffic.py      the population in a bubble around the ego
+    world.py        the step loop (World, WorldConfig, record)
+
+Who drives the ego is one seam: WorldConfig.ego_driver "expert" (default) or "external", then
+World.step(EgoCommand(pose, speed)) every step and World.truth() for scoring (world.py).
+
+Everything other modules import from here is re-exported below, so `from datagen.world import
+World, WorldConfig, record` stays the one entry point.
+"""
+
+from datagen.world.fleet import (
+    EGO_DECEL_SLACK,
+    EGO_DIMS_M,
+    EGO_ID,
+    PED_DIMS_M,
+    VEHICLE_TYPES,
+)
+from datagen.world.route import (
+    COMMAND_RANGE_M,
+    EXIT_INTO_M,
+    PATH_LOOKAHEAD_M,
+    SIGNAL_RANGE_M,
+    TARGET_AHEAD_M,
+)
+from datagen.world.sumo import TELEPORT_S
+from datagen.world.traffic import PED_REMOVE_M, PED_SPAWN_M, VEH_REMOVE_M, VEH_SPAWN_M
+from datagen.world.world import (
+    AGENT_RADIUS_M,
+    BLOCKED_S,
+    EGO_DRIVERS,
+    WARMUP_S,
+    EgoCommand,
+    EgoTruth,
+    World,
+    WorldConfig,
+    record,
+)
+
+__all__ = [
+    "AGENT_RADIUS_M",
+    "BLOCKED_S",
+    "COMMAND_RANGE_M",
+    "EGO_DECEL_SLACK",
+    "EGO_DIMS_M",
+    "EGO_DRIVERS",
+    "EGO_ID",
+    "EXIT_INTO_M",
+    "PATH_LOOKAHEAD_M",
+    "PED_DIMS_M",
+    "PED_REMOVE_M",
+    "PED_SPAWN_M",
+    "SIGNAL_RANGE_M",
+    "TARGET_AHEAD_M",
+    "TELEPORT_S",
+    "VEHICLE_TYPES",
+    "VEH_REMOVE_M",
+    "VEH_SPAWN_M",
+    "WARMUP_S",
+    "EgoCommand",
+    "EgoTruth",
+    "World",
+    "WorldConfig",
+    "record",
+]

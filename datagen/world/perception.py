@@ -1,0 +1,152 @@
+"""What the ego perceives: the obstacles on its path and who holds it back. Pure functions of a
+sumo.Snapshot's readings and a route.Path (world frame, metres; distances along the path from
+the ego's front bumper)."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from datagen import expert
+from datagen.world.fleet import EGO_DIMS_M, dims
+from datagen.world.route import Path, project
+from datagen.world.sumo import AgentReading, Leader, box_centre
+
+_CROSSING = re.compile(r"_c\d+_\d+$")  # internal crossing lane ":<junction>_c<k>_<lane>"
+_WALKING_AREA = re.compile(r"_w\d+_\d+$")
+
+
+def is_kerb(lane_id: str, allowed: tuple[str, ...] | None) -> bool:
+    """A walking area or a pedestrian-only lane (sidewalk, footpath); `allowed` is the lane's
+    vClasses (ignored for internal lanes)."""
+    if lane_id.startswith(":"):
+        return _WALKING_AREA.search(lane_id) is not None
+    return lane_id != "" and allowed == ("pedestrian",)
+
+
+def is_crossing(lane_id: str) -> bool:
+    """An internal lane of a pedestrian crossing."""
+    return _CROSSING.search(lane_id) is not None
+
+
+def obstacles(
+    agents: Sequence[AgentReading],
+    kerb: Callable[[str], bool],
+    ego_in_junction: bool,
+    path: Path,
+    leader: Leader | None,
+) -> list[expert.Obstacle]:
+    """Vehicles and people on (or entering) the ego's path, and the lane leader.
+
+    A box is on the path when its extent across the path comes within the ego's half width plus
+    a margin (0.35 m vehicles, 0.8 m people on the road, 0 at the kerb). People are also taken
+    where they will be in 1 s and 2 s at their speed. `kerb(lane_id)` says whether a lane is a
+    sidewalk or walking area; the leader's gap gets back the ego vType's 1 m minGap.
+    """
+    pts, s = path.pts, path.s
+    ids, xy, yaw, spd, box, kerb_l = [], [], [], [], [], []
+    for a in agents:
+        d = dims(a.type_id)
+        kerb_l.append(d[3] == "pedestrian" and kerb(a.lane_id))
+        pose = box_centre(a.front_xy_m, a.yaw_rad, d[0])
+        ids.append(a.agent_id)
+        xy.append((pose.x_m, pose.y_m))
+        yaw.append(pose.yaw_rad)
+        spd.append(a.speed_mps)
+        box.append(d)
+    out = []
+    half_w = 0.5 * EGO_DIMS_M[1]
+    if ids:
+        xy_a = np.asarray(xy)
+        yaw_a = np.asarray(yaw)
+        spd_a = np.asarray(spd)
+        length = np.array([d[0] for d in box])
+        width = np.array([d[1] for d in box])
+        is_ped = np.array([d[3] == "pedestrian" for d in box])
+        # People on a sidewalk or walking area count only where they will be (entering the
+        # road), not where they stand: someone waiting at the kerb is not on the path, and
+        # yielding to them would deadlock with SUMO, where they wait for the car.
+        kerb_a = np.asarray(kerb_l)
+        near = np.hypot(*(xy_a - pts[0]).T) < s[-1] + 15.0
+        if near.any():
+            k = np.flatnonzero(near)
+            # now, and for pedestrians also where they will be in 1 s and 2 s
+            horizons = (0.0, 1.0, 2.0)
+            for h in horizons:
+                if h == 0.0:
+                    sel = k[~kerb_a[k]]
+                elif ego_in_junction:
+                    # Inside a junction, never brake for someone still on the kerb: SUMO
+                    # granted our passage, and stopping in it invites a crossing car into
+                    # our side (one of the three ego collisions in a 160-episode run).
+                    sel = k[is_ped[k] & ~kerb_a[k] & (spd_a[k] > 0.2)]
+                else:
+                    sel = k[is_ped[k] & (spd_a[k] > 0.2)]
+                if len(sel) == 0:
+                    continue
+                p = xy_a[sel] + h * spd_a[sel, None] * np.stack(
+                    [np.cos(yaw_a[sel]), np.sin(yaw_a[sel])], 1
+                )
+                along, lat, head = project(p, pts, s)
+                rel = yaw_a[sel] - head
+                c, sn = np.abs(np.cos(rel)), np.abs(np.sin(rel))
+                across = 0.5 * length[sel] * sn + 0.5 * width[sel] * c
+                ahead = 0.5 * length[sel] * c + 0.5 * width[sel] * sn
+                margin = np.where(is_ped[sel], np.where(kerb_a[sel], 0.0, 0.8), 0.35)
+                hit = (lat - across < half_w + margin) & (along + ahead > 0.0)
+                hit &= along - ahead < s[-1]
+                for j in np.flatnonzero(hit):
+                    i = sel[j]
+                    gap = float(along[j] - ahead[j])
+                    if is_ped[i]:
+                        out.append(expert.Obstacle(gap, 0.0, "pedestrian", ids[i]))
+                    else:
+                        v_along = max(0.0, float(spd_a[i] * np.cos(rel[j])))
+                        out.append(expert.Obstacle(gap, v_along, "vehicle", ids[i]))
+    if leader is not None:
+        # SUMO's gap leaves out the ego vType's minGap (1 m); "lead:" marks the lane leader
+        out.append(
+            expert.Obstacle(
+                leader.gap_m + 1.0, leader.speed_mps, "vehicle", "lead:" + leader.agent_id
+            )
+        )
+    return out
+
+
+def junction_clear(
+    agents: Sequence[AgentReading], junction: str | None, kerb: Callable[[str], bool]
+) -> bool:
+    """No other vehicle is inside `junction` (on its internal lanes); people on its crossings
+    and walking areas are left to the pedestrian rule and SUMO. True without a junction."""
+    if junction is None:
+        return True
+    prefix = f":{junction}_"
+    for a in agents:
+        lane = a.lane_id
+        if lane.startswith(prefix) and not kerb(lane) and not is_crossing(lane):
+            return False
+    return True
+
+
+def attribute_hold(
+    stop_distance_m: float | None,
+    path: Path,
+    agents: Sequence[AgentReading],
+    ego_in_junction: bool,
+    link_dist: tuple[float, ...],
+) -> str:
+    """Name what SUMO's safety model yields to when it holds the ego below the command:
+    "stop_sign", "pedestrian" (someone within 5 m of the path, 2 m behind to 50 m ahead),
+    "junction" (in one or within 50 m of the next link) or else "vehicle"."""
+    if stop_distance_m is not None and stop_distance_m < 10.0:
+        return "stop_sign"
+    peds = [a.front_xy_m for a in agents if a.agent_id.startswith("p")]
+    if peds:
+        along, lat, _ = project(np.asarray(peds, dtype=np.float64), path.pts, path.s)
+        if np.any((lat < 5.0) & (along > -2.0) & (along < 50.0)):
+            return "pedestrian"
+    if ego_in_junction or (link_dist and link_dist[0] < 50.0):
+        return "junction"
+    return "vehicle"

@@ -1,0 +1,369 @@
+"""The ego's route ahead as pure geometry: path polyline, turn command, target point, signals.
+
+Everything here is a pure function of lane geometry (world frame: x east, y north, metres) and
+SUMO's link tuples; lane lookups go through a `RoadNet` (sumo.Network in the world, a dict-backed
+stand-in in tests). Distances "along the path" are measured from the ego's front bumper.
+
+Internal lanes (inside a junction) have ids ":<junction>_<index>_<lane>"; a link's `via_lane_id`
+is the first internal lane of that passage ("" for a link without one).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple, Protocol
+
+import numpy as np
+
+SIGNAL_RANGE_M = 30.0  # FrameState.traffic_light / stop_sign look this far along the route
+PATH_LOOKAHEAD_M = 100.0  # the expert plans over this much of its route
+COMMAND_RANGE_M = 40.0  # a turn command is given from this distance before the junction
+TARGET_AHEAD_M = 30.0  # target point on plain road: this far ahead along the route
+EXIT_INTO_M = 5.0  # target point at a junction: this far into its exit lane
+
+LIGHT_STATES = {"r": "red", "u": "red", "y": "yellow", "Y": "yellow", "G": "green", "g": "green"}
+COMMANDS_BY_DIRECTION = {
+    "s": "straight",
+    "l": "left",
+    "L": "left",
+    "t": "left",
+    "r": "right",
+    "R": "right",
+}
+# link states of a right-of-way junction entry (no signal, no stop): a stop entry behind them
+# still governs the ego
+_UNSIGNALLED = ("M", "m", "=", "O", "o")
+
+
+@dataclass(frozen=True)
+class Lane:
+    """Static geometry of one lane (world frame, metres).
+
+    Attributes:
+        pts: (N, 2) float64 shape points.
+        length_m: SUMO lane length (may differ slightly from the shape's).
+        speed_mps: speed limit.
+    """
+
+    pts: np.ndarray
+    length_m: float
+    speed_mps: float
+
+
+class Link(NamedTuple):
+    """One link from a lane to the next (a libsumo link tuple, named).
+
+    Attributes:
+        lane_id: the lane it leads to.
+        via_lane_id: its first internal lane inside the junction, "" if none.
+        state: right-of-way / signal state now ("G", "r", "s" stop, "w" all-way stop, "M"...);
+            "" in the network's static links (Network.links).
+        direction: "s", "l", "L", "r", "R", "t" (SUMO's link direction).
+    """
+
+    lane_id: str
+    via_lane_id: str
+    state: str
+    direction: str
+
+
+class RoadNet(Protocol):
+    """Static lane lookups the geometry needs (sumo.Network)."""
+
+    def lane(self, lane_id: str) -> Lane: ...
+
+    def links(self, lane_id: str) -> tuple[Link, ...]: ...
+
+    def allowed(self, lane_id: str) -> tuple[str, ...]: ...
+
+    def lane_count(self, edge_id: str) -> int: ...
+
+
+@dataclass(frozen=True)
+class Path:
+    """The ego's path ahead (world frame) from its front bumper along lanes and next links.
+
+    Attributes:
+        pts: (N, 2) float64 polyline, m, N >= 2.
+        s: (N,) float64 distance along it from pts[0], m.
+        link_dist: distance from the ego's front to each next link's start (the end of the lane
+            before it), m, one per link walked.
+        seg_lanes: (distance where it starts, lane id) of each lane on the path, the ego's first.
+    """
+
+    pts: np.ndarray
+    s: np.ndarray
+    link_dist: tuple[float, ...]
+    seg_lanes: tuple[tuple[float, str], ...]
+
+
+@dataclass(frozen=True)
+class Signals:
+    """The next signal and stop-controlled entry ahead on the route (unlimited range).
+
+    Attributes:
+        light: "none", "red", "yellow" or "green" of the next traffic light.
+        light_distance_m: distance to its stop line, None without a light.
+        stop_distance_m: distance to the next stop-controlled entry's line, None without one.
+        stop_junction: that entry's junction id, None if none or it has no internal lane.
+    """
+
+    light: str
+    light_distance_m: float | None
+    stop_distance_m: float | None
+    stop_junction: str | None
+
+
+def cut(lane: Lane, pos_m: float) -> np.ndarray:
+    """The lane's shape from `pos_m` (lane-length units) to its end: (K, 2)."""
+    pts = lane.pts
+    seg = np.diff(pts, axis=0)
+    cum = np.concatenate([[0.0], np.cumsum(np.hypot(seg[:, 0], seg[:, 1]))])
+    target = pos_m * (cum[-1] / lane.length_m if lane.length_m > 0 else 1.0)
+    i = int(np.searchsorted(cum, target, side="right"))
+    if i >= len(pts):
+        return pts[-1:]
+    i = max(i, 1)
+    f = (target - cum[i - 1]) / max(cum[i] - cum[i - 1], 1e-9)
+    start = pts[i - 1] + f * (pts[i] - pts[i - 1])
+    return np.vstack([start, pts[i:]])
+
+
+def project(
+    xy: np.ndarray, pts: np.ndarray, s: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Project (K, 2) points onto a polyline: along-path s (K,), unsigned lateral distance (K,)
+    and the path heading at the projection (K,), radians."""
+    a = pts[:-1]  # (M, 2)
+    d = pts[1:] - a  # (M, 2)
+    seg_len = np.sqrt((d * d).sum(1))  # (M,)
+    l2 = np.maximum(seg_len * seg_len, 1e-9)
+    rel = xy[:, None, :] - a[None]  # (K, M, 2)
+    t = np.clip((rel * d[None]).sum(-1) / l2, 0.0, 1.0)  # (K, M)
+    off = rel - t[..., None] * d[None]
+    dist = np.sqrt((off * off).sum(-1))  # (K, M)
+    idx = dist.argmin(1)
+    k = np.arange(len(xy))
+    along = s[idx] + t[k, idx] * seg_len[idx]
+    # points beyond the ends: extend the first/last segment so "behind" gives negative s
+    heading = np.arctan2(d[idx, 1], d[idx, 0])
+    first = (idx == 0) & (t[k, idx] <= 0.0)
+    if first.any():
+        u = d[0] / max(seg_len[0], 1e-9)
+        along[first] = s[0] + ((xy[first] - a[0]) @ u)
+        dist[k[first], 0] = np.abs((xy[first] - a[0]) @ np.array([-u[1], u[0]]))
+    return along, dist[k, idx], heading
+
+
+def via_chain(net: RoadNet, internal: str) -> list[str]:
+    """The internal lane(s) of one junction passage starting at `internal` (an internal
+    junction splits a turn into two lanes)."""
+    chain, lid = [internal], internal
+    while len(chain) < 4:
+        links = net.links(lid)
+        if not links or not links[0].via_lane_id:
+            break
+        lid = links[0].via_lane_id
+        chain.append(lid)
+    return chain
+
+
+def exit_chain(net: RoadNet, internal: str) -> list[str]:
+    """From inside a junction: the remaining internal lanes and the exit lane."""
+    chain, lid = [], internal
+    while len(chain) < 4:
+        links = net.links(lid)
+        if not links:
+            break
+        lid = links[0].via_lane_id or links[0].lane_id
+        chain.append(lid)
+        if not lid.startswith(":"):
+            break
+    return chain
+
+
+def junction_has_choice(net: RoadNet, from_lane: str) -> bool:
+    """True if the edge of `from_lane` leads to two or more drivable edges (a real
+    intersection, where a turn command means something)."""
+    edge = from_lane.rsplit("_", 1)[0]
+    outs = set()
+    for k in range(net.lane_count(edge)):
+        for link in net.links(f"{edge}_{k}"):
+            if link.direction != "t" and "passenger" in net.allowed(link.lane_id):
+                outs.add(link.lane_id.rsplit("_", 1)[0])
+    return len(outs) >= 2
+
+
+def path_ahead(
+    net: RoadNet,
+    lane_id: str,
+    lane_pos_m: float,
+    links: tuple[Link, ...],
+    front_xy_m: tuple[float, float],
+    yaw_rad: float,
+) -> Path:
+    """The path polyline from the ego's front along its current lane and next links, up to
+    PATH_LOOKAHEAD_M (plus the lane that crosses it); a 1 m stub along the heading if the
+    lanes give fewer than two points."""
+    lane = net.lane(lane_id)
+    pieces = [cut(lane, lane_pos_m)]
+    seg_lanes = [(0.0, lane_id)]
+    dist = lane.length_m - lane_pos_m
+    if lane_id.startswith(":"):
+        # inside a junction getNextLinks starts after the exit lane: walk out first
+        for nxt in exit_chain(net, lane_id):
+            seg_lanes.append((dist, nxt))
+            pieces.append(net.lane(nxt).pts)
+            dist += net.lane(nxt).length_m
+    link_dist = []
+    for link in links:
+        link_dist.append(dist)
+        if dist > PATH_LOOKAHEAD_M:
+            break
+        chain = via_chain(net, link.via_lane_id) if link.via_lane_id else []
+        for via in chain:
+            pieces.append(net.lane(via).pts)
+            dist += net.lane(via).length_m
+        seg_lanes.append((dist, link.lane_id))
+        dist += net.lane(link.lane_id).length_m
+        pieces.append(net.lane(link.lane_id).pts)
+    pts = np.concatenate(pieces)
+    step = np.diff(pts, axis=0)
+    keep = np.concatenate([[True], np.hypot(step[:, 0], step[:, 1]) > 0.2])
+    pts = pts[keep]
+    if len(pts) < 2:
+        x, y = front_xy_m
+        pts = np.array([[x, y], [x + math.cos(yaw_rad), y + math.sin(yaw_rad)]])
+    seg = np.diff(pts, axis=0)
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(seg[:, 0], seg[:, 1]))])
+    return Path(pts, s, tuple(link_dist), tuple(seg_lanes))
+
+
+def signals(next_signals, links: tuple[Link, ...], link_dist: tuple[float, ...]) -> Signals:
+    """The next light (from `next_signals`, sumo.NextSignal tuples nearest first) and the next
+    stop-controlled entry along `links` (a signal met first governs instead)."""
+    light, light_d = "none", None
+    for _tls, _idx, d, state in next_signals[:1]:
+        light, light_d = LIGHT_STATES.get(state, "none"), float(d)
+        if light == "none":
+            light_d = None
+    stop_d = None
+    stop_junction = None
+    for link, d in zip(links, link_dist):
+        if link.state in ("s", "w"):
+            stop_d = float(d)
+            if link.via_lane_id:  # internal lane ":<junction>_<index>_<lane>"
+                stop_junction = link.via_lane_id[1:].rsplit("_", 2)[0]
+            break
+        if link.state not in _UNSIGNALLED:  # a signal first: it governs
+            break
+    return Signals(light, light_d, stop_d, stop_junction)
+
+
+def exit_point(net: RoadNet, lane_id: str) -> tuple[float, float]:
+    """The point EXIT_INTO_M into a junction's exit lane (at most half its length), world m."""
+    lane = net.lane(lane_id)
+    pts = cut(lane, min(EXIT_INTO_M, 0.5 * lane.length_m))
+    return float(pts[0, 0]), float(pts[0, 1])
+
+
+# (junction id, command, exit lane) of the junction passage a command was given for: kept while
+# the ego is inside that junction
+Sticky = tuple[str, str, str]
+
+
+def command_and_target(
+    net: RoadNet,
+    lane_id: str,
+    path: Path,
+    links: tuple[Link, ...],
+    sticky: Sticky | None,
+) -> tuple[str, tuple[float, float], Sticky | None]:
+    """(command, target point, sticky) from the route ahead.
+
+    Within COMMAND_RANGE_M of a junction with a choice the command is the link's turn and the
+    target point lies EXIT_INTO_M into the exit lane; both stay (sticky) while the ego is inside
+    that junction. Elsewhere the command is "follow" and the target lies TARGET_AHEAD_M along
+    the path. `sticky` is the value returned for the previous frame (None at the start).
+    """
+    pts, s = path.pts, path.s
+    if lane_id.startswith(":"):
+        if sticky is not None:
+            _j, cmd, exit_lane = sticky
+            return cmd, exit_point(net, exit_lane), sticky
+    else:
+        sticky = None
+        from_lane = lane_id
+        for link, d in zip(links, path.link_dist):
+            if d > COMMAND_RANGE_M:
+                break
+            if not link.via_lane_id:  # no internal lane: not a junction we drive through
+                from_lane = link.lane_id
+                continue
+            if junction_has_choice(net, from_lane):
+                cmd = COMMANDS_BY_DIRECTION.get(link.direction, "straight")
+                junction = link.via_lane_id[1:].rsplit("_", 2)[0]
+                sticky = (junction, cmd, link.lane_id)
+                return cmd, exit_point(net, link.lane_id), sticky
+            from_lane = link.lane_id
+    return "follow", point_along(pts, s, TARGET_AHEAD_M), sticky
+
+
+def point_along(pts: np.ndarray, s: np.ndarray, dist_m: float) -> tuple[float, float]:
+    """The point `dist_m` along a polyline (its end if shorter), world m."""
+    i = int(np.searchsorted(s, dist_m))
+    if i >= len(s):
+        tp = pts[-1]
+    else:
+        f = (dist_m - s[i - 1]) / max(s[i] - s[i - 1], 1e-9)
+        tp = pts[i - 1] + f * (pts[i] - pts[i - 1])
+    return float(tp[0]), float(tp[1])
+
+
+def curvature_ahead(path: Path, min_curvature_1pm: float) -> tuple[tuple[float, float], ...]:
+    """(distance_m, curvature_1pm) at path vertices where it exceeds `min_curvature_1pm`:
+    turning angle / local segment length (segments shorter than 1.5 m count as 1.5 m)."""
+    pts, s = path.pts, path.s
+    if len(pts) < 3:
+        return ()
+    seg = np.diff(pts, axis=0)
+    head = np.arctan2(seg[:, 1], seg[:, 0])
+    seg_len = np.hypot(seg[:, 0], seg[:, 1])
+    dth = np.abs((np.diff(head) + np.pi) % (2 * np.pi) - np.pi)
+    k = dth / np.maximum(1.5, 0.5 * (seg_len[:-1] + seg_len[1:]))
+    sel = np.flatnonzero(k > min_curvature_1pm)
+    return tuple((float(s[i + 1]), float(k[i])) for i in sel)
+
+
+def speed_limits(
+    net: RoadNet, lane_id: str, path: Path
+) -> tuple[float, tuple[tuple[float, float], ...]]:
+    """(limit now, lower limits ahead as (distance_m, limit_mps)) along the path's lanes;
+    inside a junction the exit lane's limit is the one that counts now."""
+    limit = net.lane(lane_id).speed_mps
+    limits_ahead = []
+    is_internal = lane_id.startswith(":")
+    for d, lid in path.seg_lanes[1:]:
+        if lid.startswith(":"):
+            continue
+        v = net.lane(lid).speed_mps
+        if is_internal:
+            limit, is_internal = v, False
+        elif v < limit:
+            limits_ahead.append((d, v))
+    return limit, tuple(limits_ahead)
+
+
+def route_suffix_m(net: RoadNet, route: tuple[str, ...]) -> np.ndarray:
+    """(len(route) + 1,) length of each suffix of the route (lane-0 lengths), m; last 0."""
+    lengths = np.array([net.lane(f"{e}_0").length_m for e in route])
+    return np.concatenate([np.cumsum(lengths[::-1])[::-1], [0.0]])
+
+
+def remaining_route_m(
+    net: RoadNet, suffix_m: np.ndarray, lane_id: str, lane_pos_m: float, route_index: int
+) -> float:
+    """Distance from the ego's front to the end of its route, m."""
+    rest = net.lane(lane_id).length_m - lane_pos_m
+    return float(rest + suffix_m[min(route_index + 1, len(suffix_m) - 1)])

@@ -1,0 +1,591 @@
+"""The only module that calls libsumo: start the simulation, read typed snapshots, apply commands.
+
+`Sumo` owns one libsumo simulation (libsumo runs one per process). Each step the world reads a
+`Snapshot` (the ego's own state, everyone within the context radius, its next links and signals)
+and sends commands back (the ego's speed or pose, spawns, removals, a new ego route). `Network`
+answers static questions about lanes (shapes, links, who may use them) and caches the answers.
+
+Conversions happen here, once: SUMO's position is the front bumper of a vehicle and its angle
+navigational (degrees, 0 = north, clockwise); readings carry the front position as SUMO gives it
+and `yaw_rad`, counter-clockwise from east (+x) in radians; `box_centre` turns a reading into a
+box-centre `Pose`.
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+import tempfile
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from datagen.behaviour import Profile, vtype_attributes
+from datagen.errors import UserError
+from datagen.state import Pose
+from datagen.world.fleet import (
+    EGO_DECEL_SLACK,
+    EGO_DIMS_M,
+    EGO_ID,
+    PED_DIMS_M,
+    PED_TYPE,
+    VEHICLE_TYPES,
+)
+from datagen.world.route import Lane, Link
+
+TELEPORT_S = 90.0  # SUMO's time-to-teleport for jammed background vehicles
+EGO_TYPE = "ego_type"
+
+
+def yaw_from_sumo(angle_deg: float) -> float:
+    """SUMO's navigational angle (degrees, 0 = north, clockwise) -> yaw CCW from east, rad."""
+    return (math.radians(90.0 - angle_deg) + math.pi) % (2 * math.pi) - math.pi
+
+
+def sumo_angle(yaw_rad: float) -> float:
+    """Yaw CCW from east (rad) -> SUMO's navigational angle (degrees, 0 = north, clockwise)."""
+    return (90.0 - math.degrees(yaw_rad)) % 360.0
+
+
+def box_centre(front_xy_m: tuple[float, float], yaw_rad: float, length_m: float) -> Pose:
+    """SUMO front-bumper position + yaw (CCW from east) -> box-centre Pose."""
+    half = 0.5 * length_m
+    return Pose(
+        front_xy_m[0] - half * math.cos(yaw_rad), front_xy_m[1] - half * math.sin(yaw_rad), yaw_rad
+    )
+
+
+# Readings are NamedTuples, not frozen dataclasses: ~50 are built every 0.1 s step and a
+# NamedTuple is immutable and typed at a fraction of a frozen dataclass's construction cost.
+class AgentReading(NamedTuple):
+    """One other vehicle or person as SUMO reports it (world frame).
+
+    Attributes:
+        agent_id: SUMO id ("v<n>" vehicles, "p<n>" people).
+        type_id: SUMO vType id (fleet.dims gives its box).
+        front_xy_m: SUMO position, m: a vehicle's front bumper (a person's front too).
+        yaw_rad: heading, counter-clockwise from east, rad.
+        speed_mps: speed, m/s.
+        lane_id: lane (internal lanes start with ":"; "" off the network).
+    """
+
+    agent_id: str
+    type_id: str
+    front_xy_m: tuple[float, float]
+    yaw_rad: float
+    speed_mps: float
+    lane_id: str
+
+
+class EgoReading(NamedTuple):
+    """The ego as SUMO reports it (world frame).
+
+    Attributes:
+        front_xy_m: front-bumper position, m.
+        yaw_rad: heading, counter-clockwise from east, rad.
+        speed_mps: speed, m/s.
+        lane_id, lane_pos_m: lane and distance of the front along it (lane-length units, m).
+        road_id: edge id.
+        route_index: index of the current edge in the ego's SUMO route.
+    """
+
+    front_xy_m: tuple[float, float]
+    yaw_rad: float
+    speed_mps: float
+    lane_id: str
+    lane_pos_m: float
+    road_id: str
+    route_index: int
+
+
+class NextSignal(NamedTuple):
+    """The next traffic-light link on the ego's route (libsumo getNextTLS).
+
+    Attributes:
+        tls_id: traffic light id; link_index: its link governing the ego's lane;
+        distance_m: from the ego's front to the stop line, m; state: SUMO's state character
+        ("r", "y", "G", ...) of that link now.
+    """
+
+    tls_id: str
+    link_index: int
+    distance_m: float
+    state: str
+
+
+class Leader(NamedTuple):
+    """The vehicle ahead in the ego's lane(s): id, bumper gap (SUMO's, without the ego vType's
+    minGap), m, and its speed, m/s."""
+
+    agent_id: str
+    gap_m: float
+    speed_mps: float
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """What the world reads from SUMO after a step.
+
+    Attributes:
+        ego: the ego.
+        agents: every other vehicle and person within the context radius, in SUMO's order.
+        links: the ego's next links along its route (getNextLinks), state included.
+        next_signals: the next traffic-light links on its route (getNextTLS), nearest first.
+    """
+
+    ego: EgoReading
+    agents: tuple[AgentReading, ...]
+    links: tuple[Link, ...]
+    next_signals: tuple[NextSignal, ...]
+
+
+@dataclass(frozen=True)
+class Collision:
+    """One collision SUMO reported in the last step (libsumo getCollisions)."""
+
+    collider: str
+    victim: str
+    kind: str
+    lane_id: str
+
+
+@dataclass(frozen=True)
+class StepEvents:
+    """What happened in the last step: collisions, vehicles that started a teleport, arrivals."""
+
+    collisions: tuple[Collision, ...]
+    teleported: tuple[str, ...]
+    arrived: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class Roads:
+    """Static tables of the network's edges (world frame, metres), sorted by edge id.
+
+    Attributes:
+        drive_edges: (E,) ids of edges with a lane for cars; drive_lanes: (E,) int their number
+            of car lanes; drive_xy: (E, 2) middle of lane 0; drive_len: (E,) lane-0 length.
+        walk_edges, walk_xy, walk_len: the same for pedestrian-only edges (sidewalks, paths).
+    """
+
+    drive_edges: tuple[str, ...]
+    drive_lanes: np.ndarray
+    drive_xy: np.ndarray
+    drive_len: np.ndarray
+    walk_edges: tuple[str, ...]
+    walk_xy: np.ndarray
+    walk_len: np.ndarray
+
+
+class Network:
+    """Static lane queries, cached (implements route.RoadNet)."""
+
+    def __init__(self, ls):
+        self._ls = ls
+        self._lanes: dict[str, Lane] = {}
+        self._links: dict[str, tuple[Link, ...]] = {}
+        self._allowed: dict[str, tuple[str, ...]] = {}
+
+    def lane(self, lane_id: str) -> Lane:
+        lane = self._lanes.get(lane_id)
+        if lane is None:
+            ls = self._ls
+            pts = np.asarray(ls.lane.getShape(lane_id), dtype=np.float64)
+            lane = Lane(pts, ls.lane.getLength(lane_id), ls.lane.getMaxSpeed(lane_id))
+            self._lanes[lane_id] = lane
+        return lane
+
+    def links(self, lane_id: str) -> tuple[Link, ...]:
+        """Outgoing links of a lane (static parts only: to, via, direction; state "")."""
+        links = self._links.get(lane_id)
+        if links is None:
+            links = tuple(Link(k[0], k[4], "", k[6]) for k in self._ls.lane.getLinks(lane_id))
+            self._links[lane_id] = links
+        return links
+
+    def allowed(self, lane_id: str) -> tuple[str, ...]:
+        """vClasses allowed on a lane."""
+        a = self._allowed.get(lane_id)
+        if a is None:
+            a = tuple(self._ls.lane.getAllowed(lane_id))
+            self._allowed[lane_id] = a
+        return a
+
+    def lane_count(self, edge_id: str) -> int:
+        return self._ls.edge.getLaneNumber(edge_id)
+
+
+class Sumo:
+    """One libsumo simulation (see module docstring). Call `close()` when done."""
+
+    def __init__(self, net_path: Path, profile: Profile, step_s: float, seed: int):
+        import libsumo
+
+        self._ls = libsumo
+        self.step_s = step_s
+        self.started = False
+        tmp = Path(tempfile.mkdtemp(prefix="iidsu-world-"))
+        try:
+            add_file = tmp / "types.add.xml"
+            ET.ElementTree(_types_xml(profile)).write(add_file)
+            libsumo.start(_command(net_path, add_file, step_s, seed))
+            self.started = True
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)  # read at start-up; nothing to leak later
+        self.net = Network(libsumo)
+        self.TraCIException = libsumo.TraCIException
+
+    # ------------------------------------------------------------------ network
+
+    def roads(self, net_path: Path) -> Roads:
+        """The network's drivable and walkable edges (UserError if no lane allows cars)."""
+        ls = self._ls
+        drive, walk, car_lanes = [], [], {}
+        for e in ls.edge.getIDList():
+            if e.startswith(":"):
+                continue
+            n = ls.edge.getLaneNumber(e)
+            allowed = [ls.lane.getAllowed(f"{e}_{k}") for k in range(n)]
+            if any("passenger" in a for a in allowed):
+                drive.append(e)
+                car_lanes[e] = sum("passenger" in a for a in allowed)
+            if any("pedestrian" in a and "passenger" not in a for a in allowed):
+                walk.append(e)
+        if not drive:
+            raise UserError(f"{net_path}: no lane allows passenger cars")
+        drive_edges = sorted(drive)
+        walk_edges = sorted(walk)
+
+        def mid_len(e: str) -> tuple[float, float, float]:
+            shape = ls.lane.getShape(f"{e}_0")
+            pts = np.asarray(shape)
+            i = len(pts) // 2
+            m = pts[i] if len(pts) % 2 else 0.5 * (pts[i - 1] + pts[i])
+            return float(m[0]), float(m[1]), ls.lane.getLength(f"{e}_0")
+
+        d = np.array([mid_len(e) for e in drive_edges]).reshape(-1, 3)
+        w = np.array([mid_len(e) for e in walk_edges]).reshape(-1, 3)
+        return Roads(
+            drive_edges=tuple(drive_edges),
+            drive_lanes=np.array([car_lanes[e] for e in drive_edges]),
+            drive_xy=d[:, :2],
+            drive_len=d[:, 2],
+            walk_edges=tuple(walk_edges),
+            walk_xy=w[:, :2],
+            walk_len=w[:, 2],
+        )
+
+    def find_route(self, a: str, b: str, vtype: str) -> tuple[str, ...]:
+        """Edges of the fastest route from a to b for vtype; () if there is none."""
+        try:
+            return tuple(self._ls.simulation.findRoute(a, b, vtype).edges)
+        except self._ls.TraCIException:  # e.g. the vClass may not use edge a
+            return ()
+
+    def find_walk(self, a: str, b: str) -> tuple:
+        """Stages of a pedestrian's walk from edge a to edge b; () if there is none."""
+        try:
+            return tuple(self._ls.simulation.findIntermodalRoute(a, b, pType=PED_TYPE))
+        except self._ls.TraCIException:
+            return ()
+
+    # ------------------------------------------------------------------ population
+
+    def add_vehicle(self, vid: str, route: tuple[str, ...], type_id: str) -> None:
+        """A background vehicle departing now at a random free place of its first edge."""
+        ls = self._ls
+        ls.route.add(f"r_{vid}", route)
+        ls.vehicle.add(
+            vid,
+            f"r_{vid}",
+            typeID=type_id,
+            depart="now",
+            departLane="best",
+            departPos="random_free",
+            departSpeed="max",
+        )
+
+    def add_person(self, pid: str, edge: str, pos_m: float, stages: tuple) -> None:
+        ls = self._ls
+        ls.person.add(pid, edge, pos_m, typeID=PED_TYPE)
+        for st in stages:
+            ls.person.appendStage(pid, st)
+
+    def vehicle_ids(self) -> list[str]:
+        """Ids of every vehicle but the ego."""
+        return [v for v in self._ls.vehicle.getIDList() if v != EGO_ID]
+
+    def person_ids(self) -> tuple[str, ...]:
+        return self._ls.person.getIDList()
+
+    def vehicle_xy(self, vid: str) -> tuple[float, float]:
+        return self._ls.vehicle.getPosition(vid)
+
+    def person_xy(self, pid: str) -> tuple[float, float]:
+        return self._ls.person.getPosition(pid)
+
+    def remove_vehicle(self, vid: str) -> None:
+        self._ls.vehicle.remove(vid)
+
+    def remove_person(self, pid: str) -> None:
+        self._ls.person.remove(pid)
+
+    def pending(self) -> int:
+        """SUMO's expected number of vehicles and persons (running plus waiting to depart)."""
+        return self._ls.simulation.getMinExpectedNumber()
+
+    # ------------------------------------------------------------------ the ego
+
+    def insert_ego(self, route: tuple[str, ...], attempt: int, at_start: bool) -> bool:
+        """Add the ego on `route` (at its start or a random free place), step until it is in
+        (at most 50 steps); False, and nothing left behind, if SUMO could not insert it."""
+        ls = self._ls
+        ls.route.add(f"r_ego{attempt}", route)
+        ls.vehicle.add(
+            EGO_ID,
+            f"r_ego{attempt}",
+            typeID=EGO_TYPE,
+            depart="now",
+            departLane="best",
+            departPos="base" if at_start else "random_free",
+            departSpeed="0",
+        )
+        for _ in range(50):
+            ls.simulationStep()
+            if EGO_ID in ls.vehicle.getIDList():
+                break
+        if EGO_ID in ls.vehicle.getIDList():
+            return True
+        ls.vehicle.remove(EGO_ID)
+        return False
+
+    def subscribe_ego(self, radius_m: float) -> None:
+        """Subscribe the ego's own variables and everyone within `radius_m` of it."""
+        ls = v = self._ls
+        ls.vehicle.subscribe(
+            EGO_ID,
+            [
+                v.VAR_POSITION,
+                v.VAR_ANGLE,
+                v.VAR_SPEED,
+                v.VAR_LANE_ID,
+                v.VAR_LANEPOSITION,
+                v.VAR_ROAD_ID,
+                v.VAR_ROUTE_INDEX,
+            ],
+        )
+        vars_ = [v.VAR_POSITION, v.VAR_ANGLE, v.VAR_SPEED, v.VAR_TYPE, v.VAR_LANE_ID]
+        ls.vehicle.subscribeContext(EGO_ID, v.CMD_GET_VEHICLE_VARIABLE, radius_m, vars_)
+        ls.vehicle.subscribeContext(EGO_ID, v.CMD_GET_PERSON_VARIABLE, radius_m, vars_)
+
+    def snapshot(self) -> Snapshot:
+        """The ego and everyone around it after the last step (see Snapshot)."""
+        ls = self._ls
+        r = ls.vehicle.getSubscriptionResults(EGO_ID)
+        ego = EgoReading(
+            r[ls.VAR_POSITION],
+            yaw_from_sumo(r[ls.VAR_ANGLE]),
+            float(r[ls.VAR_SPEED]),
+            r[ls.VAR_LANE_ID],
+            r[ls.VAR_LANEPOSITION],
+            r[ls.VAR_ROAD_ID],
+            int(r[ls.VAR_ROUTE_INDEX]),
+        )
+        pos, ang, spd, typ, lane = (
+            ls.VAR_POSITION,
+            ls.VAR_ANGLE,
+            ls.VAR_SPEED,
+            ls.VAR_TYPE,
+            ls.VAR_LANE_ID,
+        )
+        agents = tuple(
+            AgentReading(aid, a[typ], a[pos], yaw_from_sumo(a[ang]), a[spd], a[lane])
+            for aid, a in ls.vehicle.getContextSubscriptionResults(EGO_ID).items()
+            if aid != EGO_ID
+        )
+        on_lane = ego.lane_id != ""
+        links = (
+            tuple(Link(k[0], k[4], k[5], k[6]) for k in ls.vehicle.getNextLinks(EGO_ID))
+            if on_lane
+            else ()
+        )
+        signals = tuple(NextSignal(*s) for s in ls.vehicle.getNextTLS(EGO_ID)) if on_lane else ()
+        return Snapshot(ego, agents, links, signals)
+
+    def leader(self, snap: Snapshot, lookahead_m: float) -> Leader | None:
+        """The vehicle ahead of the ego within `lookahead_m` along its lanes, None if none."""
+        found = self._ls.vehicle.getLeader(EGO_ID, lookahead_m)
+        if not found or not found[0]:
+            return None
+        lid, gap = found
+        speed = next((a.speed_mps for a in snap.agents if a.agent_id == lid), None)
+        if speed is None:
+            speed = self._ls.vehicle.getSpeed(lid)
+        return Leader(lid, float(gap), float(speed))
+
+    def ego_route(self) -> tuple[str, ...]:
+        return tuple(self._ls.vehicle.getRoute(EGO_ID))
+
+    def set_ego_route(self, edges: list[str] | tuple[str, ...]) -> None:
+        self._ls.vehicle.setRoute(EGO_ID, list(edges))
+
+    def set_ego_speed(self, speed_mps: float) -> None:
+        """The speed the ego should drive at (SUMO's safety model may cap it, speed mode 31)."""
+        self._ls.vehicle.setSpeed(EGO_ID, speed_mps)
+
+    def take_over_ego(self) -> None:
+        """An external controller drives from now on: SUMO applies speeds as given (speed mode 0)
+        and changes no lanes on its own (lane-change mode 0)."""
+        self._ls.vehicle.setSpeedMode(EGO_ID, 0)
+        self._ls.vehicle.setLaneChangeMode(EGO_ID, 0)
+
+    def place_ego(self, pose: Pose, speed_mps: float, edge_hint: str = "") -> None:
+        """Put the ego's box centre at `pose` for the next step, anywhere (moveToXY with
+        keepRoute=2: exact position, off its lane or the road too), moving at `speed_mps`."""
+        half = 0.5 * EGO_DIMS_M[0]
+        x = pose.x_m + half * math.cos(pose.yaw_rad)  # SUMO places the front bumper
+        y = pose.y_m + half * math.sin(pose.yaw_rad)
+        self._ls.vehicle.moveToXY(EGO_ID, edge_hint, -1, x, y, sumo_angle(pose.yaw_rad), 2)
+        self._ls.vehicle.setSpeed(EGO_ID, max(0.0, speed_mps))
+
+    # ------------------------------------------------------------------ time
+
+    def step(self) -> None:
+        self._ls.simulationStep()
+
+    def events(self) -> StepEvents:
+        """Collisions, teleports and arrivals of the last step."""
+        ls = self._ls
+        return StepEvents(
+            tuple(
+                Collision(c.collider, c.victim, c.type, c.lane)
+                for c in ls.simulation.getCollisions()
+            ),
+            tuple(ls.simulation.getStartingTeleportIDList()),
+            tuple(ls.simulation.getArrivedIDList()),
+        )
+
+    def time_s(self) -> float:
+        return float(self._ls.simulation.getTime())
+
+    def close(self) -> None:
+        """Stop SUMO (idempotent)."""
+        if self.started:
+            try:
+                self._ls.close()
+            except Exception:  # noqa: BLE001  (closing a broken simulation must not mask the cause)
+                pass
+            self.started = False
+
+
+def _types_xml(p: Profile) -> ET.Element:
+    """The additional file's vTypes: background types, the ego's, pedestrians'."""
+    add = ET.Element("additional")
+    common = vtype_attributes(p)
+    for vid, vclass, length, width, height, _, _ in VEHICLE_TYPES:
+        attrs = (
+            dict(common)
+            if vclass != "bicycle"
+            else {
+                **common,
+                "speedFactor": "1",
+                "speedDev": "0.1",
+                "accel": "1.2",
+                "decel": "3",
+            }
+        )
+        ET.SubElement(
+            add,
+            "vType",
+            id=vid,
+            vClass=vclass,
+            length=f"{length}",
+            width=f"{width}",
+            height=f"{height}",
+            attrib=attrs,
+        )
+    el, ew, eh = EGO_DIMS_M
+    ET.SubElement(
+        add,
+        "vType",
+        id=EGO_TYPE,
+        vClass="passenger",
+        length=f"{el}",
+        width=f"{ew}",
+        height=f"{eh}",
+        attrib={
+            # The expert sets the speed; SUMO's own model is only the safety net, so the
+            # vType asks for nothing the expert would not: no dawdling, a short own headway
+            # (below every profile's time gap), decel a little above the comfortable one as
+            # the limit for commanded braking, emergency braking only through the safety
+            # checks, no impatience at junctions.
+            "minGap": "1.0",
+            "tau": "0.5",
+            "sigma": "0",
+            "speedFactor": "1.25",
+            "speedDev": "0",
+            "accel": f"{p.ego_accel_mps2:g}",
+            "decel": f"{EGO_DECEL_SLACK * p.ego_comfort_decel_mps2:g}",
+            "emergencyDecel": f"{p.emergency_decel_mps2:g}",
+            "impatience": "0",
+            "jmIgnoreFoeProb": "0",
+            "jmTimegapMinor": f"{p.jm_timegap_minor_s:g}",
+            "jmCrossingGap": f"{p.jm_crossing_gap_m:g}",
+            "color": "1,0,0",
+        },
+    )
+    pl, pw, ph = PED_DIMS_M
+    ET.SubElement(
+        add,
+        "vType",
+        id=PED_TYPE,
+        vClass="pedestrian",
+        length=f"{pl}",
+        width=f"{pw}",
+        height=f"{ph}",
+        attrib={"speedDev": "0.1"},
+    )
+    return add
+
+
+def _command(net_path: Path, add_file: Path, step_s: float, seed: int) -> list[str]:
+    from datagen.towns import sumo_bin
+
+    return [
+        sumo_bin("sumo"),
+        "-n",
+        str(net_path),
+        "-a",
+        str(add_file),
+        "--step-length",
+        f"{step_s:g}",
+        "--seed",
+        str(int(seed) % (2**31)),
+        "--no-step-log",
+        "true",
+        "--no-warnings",
+        "true",
+        "--xml-validation",
+        "never",
+        "--duration-log.disable",
+        "true",
+        "--collision.check-junctions",
+        "true",
+        "--collision.action",
+        "warn",
+        "--collision.mingap-factor",
+        "0",  # only real contact counts as a collision
+        "--time-to-teleport",
+        f"{TELEPORT_S:g}",
+        "--max-depart-delay",
+        "5",
+        "--lanechange.duration",
+        "2",  # continuous lane changes (no 3 m jumps in the data)
+        "--ignore-route-errors",
+        "true",
+        "--threads",
+        "1",
+    ]
