@@ -258,7 +258,6 @@ class InfractionTracker:
             self.off_route_m += moved_m
 
     def _stop_lines(self, frame: FrameState, s0: float, s1: float) -> None:
-        last = self._last
         speed = frame.ego.speed_mps
         for k, line in enumerate(self.geometry.stop_lines):
             if line.kind == "stop" and line.s_m - STOP_ZONE_M <= s1 <= line.s_m:
