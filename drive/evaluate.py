@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from datagen.episode import HISTORY  # past LiDAR sweeps in the BEV: t-1, t-2
 from datagen.errors import UserError
 from drive import score
 from drive.controller import Controller, Plan, VehicleState, bicycle_step
@@ -36,7 +37,10 @@ from drive.routes import Route, resolve_net
 
 PLAN_PERIOD_S = 0.5  # the policy plans at the data's 2 Hz
 STEP_S = 0.1  # SUMO step: the controller and the infraction tracker run every step
-HISTORY = 2  # past LiDAR sweeps in the BEV (datagen.episode.HISTORY)
+# The expert's world gives up on an ego that stands 80 s or that SUMO teleports out of a jam:
+# for the score that is the agent blocked.
+WORLD_BLOCKED = ("blocked", "teleported")
+_LAYOUTS: dict = {}  # network sha256 -> drive.layout.Layout of this process
 
 
 @dataclass(frozen=True)
@@ -85,7 +89,10 @@ def drive_route(
     net = resolve_net(route, Path(task.net_override) if task.net_override else None)
     geom = route_geometry(net, route.edges)
     static = load_static_scene(net)
-    layout = Layout.from_static(static)
+    layout = _LAYOUTS.get(static.network_sha256)
+    if layout is None:  # one town per worker at a time, as the static scene's cache
+        _LAYOUTS.clear()
+        layout = _LAYOUTS[static.network_sha256] = Layout.from_static(static)
     sensor_cfg = SensorConfig()
     model = ModelPolicy(spec, sensor_cfg.to_dict()) if spec.kind == "ckpt" else None
     need_sensors = model is not None or task.record
@@ -154,6 +161,9 @@ def drive_route(
                 vehicle = bicycle_step(vehicle, ctrl, STEP_S)
                 world.place_ego(vehicle.pose, vehicle.speed_mps)
             world.step()
+            if world.ended is not None:  # SUMO may have taken the ego out: no state to read
+                timing["sim"] += time.perf_counter() - t
+                break
             frame = world.state()
             if plan is None:  # the expert drives: follow its state
                 vehicle = VehicleState(frame.ego.pose, frame.ego.speed_mps)
@@ -161,6 +171,8 @@ def drive_route(
             k += 1
         world_end = world.ended
         world_detail = world.end_detail
+        if tracker.ended is None and world_end in WORLD_BLOCKED:
+            tracker.end("agent_blocked", frame, f"{world_end}: {world_detail}")
         sim_s = frame.time_s - (tracker.start_time_s or frame.time_s)
     if recorder is not None:
         recorder.close()

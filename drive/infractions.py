@@ -149,6 +149,12 @@ class InfractionTracker:
         p = frame.ego.pose
         self.events.append(Event(kind, frame.time_s, p.x_m, p.y_m, detail))
 
+    def end(self, kind: str, frame: FrameState, detail: str = "") -> None:
+        """End the route by an infraction found outside the tracker (e.g. the world's own)."""
+        if self.ended is None:
+            self._add(kind, frame, detail)
+            self.ended = kind
+
     def counts(self) -> dict[str, int]:
         out: dict[str, int] = {}
         for e in self.events:
