@@ -17,20 +17,33 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import math
+import signal
 import sys
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import pyarrow as pa
+
 import schemas
-from datagen import shards
+from datagen import executors, shards
 from datagen.errors import UserError
-from datagen.executors import ProcessExecutor, RayExecutor, Runner, available_cores
-from datagen.manifest import MANIFEST, BuildLock, make_manifest, prepare_output
-from datagen.plan import EPISODE_SECONDS, PAPER_FRAMES, BuildConfig, Town, is_done, plan
+from datagen.manifest import MANIFEST, META_EPISODE_JSON, BuildLock, make_manifest, prepare_output
+from datagen.plan import (
+    EPISODE_SECONDS,
+    PAPER_FRAMES,
+    BuildConfig,
+    Episode,
+    Town,
+    is_done,
+    jsonable,
+    plan,
+)
 
 HELP = "generate the dataset: driving episodes across towns and weathers, as Parquet shards"
 SUMMARY_COUNTS = (
@@ -41,6 +54,92 @@ SUMMARY_COUNTS = (
     "hard_brakes",
     "reroutes",
 )
+RESUME = "run the same command again to resume"
+MANIFEST_EVERY_S = 2.0
+"""The manifest is rewritten at most this often while building (and always at the end and on a
+stop): every shard carries its own record, so a build killed in between loses nothing (resume
+adopts the shards), and a build of many short episodes does not spend its time writing JSON."""
+
+Runner = Callable[..., object]
+"""run_episode(spec, sensors, progress) -> EpisodeResult; tests substitute a synthetic one."""
+
+
+# --------------------------------------------------------------------------------------------
+# One episode, as an executor task (in a worker process or a Ray task)
+
+
+def episode_task(
+    job: tuple[Episode, Town],
+    progress: Callable[[int], None],
+    *,
+    out_dir: str,
+    sensors: object | None,
+    runner: Runner | None = None,
+) -> dict:
+    """Run one episode and write its shard; return its record for the manifest. `runner`
+    replaces datagen.episode.run_episode (tests: synthetic tables) and then gets the Episode."""
+    episode, town = job
+    spec = episode
+    if runner is None:
+        from datagen import episode as episode_module
+
+        net_path = town.net_path
+        if town.builtin and not Path(net_path).exists():  # another machine of a Ray cluster
+            from datagen.towns import town_net_path
+
+            net_path = str(town_net_path(town.name))
+        spec = episode_module.EpisodeSpec(
+            episode_id=episode.episode_id,
+            town=episode.town,
+            net_path=str(net_path),
+            seed=episode.seed,
+            weather=episode.weather,
+            behaviour=episode.behaviour,
+            n_frames=episode.n_frames,
+        )
+        sensors = sensors if sensors is not None else episode_module.SensorConfig()
+        runner = episode_module.run_episode
+    t0, cpu0 = time.perf_counter(), time.process_time()
+    result = runner(spec, sensors, progress)
+    t1, cpu1 = time.perf_counter(), time.process_time()
+    table: pa.Table = result.table
+    rows = table.num_rows
+    if rows > episode.n_frames:
+        raise RuntimeError(f"{episode.episode_id}: {rows} rows for {episode.n_frames} asked")
+    record = {
+        **episode.key(),
+        "round": episode.round,
+        "rows": rows,
+        "end_reason": result.end_reason if rows < episode.n_frames else None,
+        "stats": _deterministic(jsonable(result.stats or {})),
+    }
+    path = shards.shard_path(Path(out_dir), episode.town, episode.episode_id)
+    record.update(file=None, bytes=0)
+    if rows:
+        meta = dict(table.schema.metadata or {})
+        embedded = {k: v for k, v in record.items() if k not in ("file", "bytes")}
+        meta[META_EPISODE_JSON.encode()] = json.dumps(embedded, sort_keys=True).encode()
+        record["bytes"] = shards.write_shard(table.replace_schema_metadata(meta), path)
+        record["file"] = str(path.relative_to(out_dir))
+    t2 = time.perf_counter()
+    # cpu_s: this process's CPU time (all threads) in run_episode; below episode_s when the
+    # machine is shared, so the two tell contention from cost.
+    timing = {"episode_s": t1 - t0, "write_s": t2 - t1, "cpu_s": cpu1 - cpu0}
+    for k, v in (result.stats or {}).items():  # per-stage seconds, if the episode reports them
+        if isinstance(v, dict) and k.startswith("tim"):
+            timing.update({f"{s}_s" if not s.endswith("_s") else s: float(x) for s, x in v.items()})
+    return {**record, "_timing": timing}
+
+
+def _deterministic(stats: dict) -> dict:
+    """Stats without wall-clock timings (`wall_s`, `timing...`), so that the manifest of a
+    resumed build equals that of an uninterrupted one."""
+    return {
+        k: v
+        for k, v in stats.items()
+        if not (k.startswith(("wall", "tim")) or k.endswith("wall_s"))
+    }
+
 
 # --------------------------------------------------------------------------------------------
 # The build
@@ -48,13 +147,40 @@ SUMMARY_COUNTS = (
 
 @dataclass
 class BuildReport:
-    """What `build` returns: the manifest and figures of this run (for the summary and bench)."""
+    """What `build` returns: the manifest and figures of this run (for the summary and bench).
+
+    Attributes:
+        peak_rss_mb: {"host:pid": peak resident MB} of every worker process that ran an episode.
+        episode_log: (seconds since start, rows) of each episode this run finished, in order.
+    """
 
     manifest: dict
     new_frames: int = 0
     elapsed_s: float = 0.0
     stage_s: dict = field(default_factory=dict)
     peak_rss_mb: dict = field(default_factory=dict)
+    episode_log: list = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How a build runs; none of it changes the dataset.
+
+    Attributes:
+        workers: episodes at once (default: all cores).
+        executor: "process" (local worker processes) or "ray".
+        ray_address: an existing Ray cluster; None starts a local instance.
+        retries: further attempts of an episode whose worker died.
+        stall_s: watchdog, seconds without progress; None = adaptive (datagen/executors.py).
+        max_episodes_per_worker: episodes before a worker process is replaced; None = never.
+    """
+
+    workers: int | None = None
+    executor: str = "process"
+    ray_address: str | None = None
+    retries: int = executors.RETRIES
+    stall_s: float | None = None
+    max_episodes_per_worker: int | None = executors.MAX_TASKS_PER_WORKER
 
 
 def build(
@@ -67,29 +193,24 @@ def build(
     ray_address: str | None = None,
     runner: Runner | None = None,
     progress_bar: bool = True,
+    options: RunOptions | None = None,
 ) -> BuildReport:
-    """Build (or resume) the dataset of `cfg` in `out_dir`; see the module docstring."""
+    """Build (or resume) the dataset of `cfg` in `out_dir`; see the module docstring.
+    `workers`, `executor` and `ray_address` are shorthands for the fields of `options`."""
+    options = options or RunOptions(workers=workers, executor=executor, ray_address=ray_address)
+    options = dataclasses.replace(options, workers=options.workers or executors.available_cores())
     out_dir = Path(out_dir)
     shards.check_writable(out_dir)
-    with BuildLock(out_dir):
-        return _build(
-            cfg,
-            out_dir,
-            workers or available_cores(),
-            force,
-            executor,
-            ray_address,
-            runner,
-            progress_bar,
-        )
+    with BuildLock(out_dir), executors.stop_on_sigterm():
+        return _build(cfg, out_dir, options, force, runner, progress_bar)
 
 
-def _build(cfg, out_dir, workers, force, executor, ray_address, runner, progress_bar):
+def _build(cfg, out_dir, options: RunOptions, force, runner, progress_bar) -> BuildReport:
     from tqdm import tqdm
 
     done = prepare_output(out_dir, cfg, force)
     towns = {t.name: t for t in cfg.towns}
-    run = {"executor": executor, "workers": workers, "started_unix": time.time()}
+    run = {"executor": options.executor, "workers": options.workers, "started_unix": time.time()}
     plans = plan(cfg, done)
     shards.write_json(make_manifest(cfg, plans, done, run), out_dir / MANIFEST)
 
@@ -98,10 +219,7 @@ def _build(cfg, out_dir, workers, force, executor, ray_address, runner, progress
     stage: Counter = Counter()
     credited: dict[str, int] = {}  # frames shown on the bar per running episode
     asked: dict[str, int] = {}
-    if executor == "ray":
-        pool = RayExecutor(ray_address, workers, out_dir, cfg.sensors, runner)
-    else:
-        pool = ProcessExecutor(workers, out_dir, cfg.sensors, runner)
+    task = functools.partial(episode_task, out_dir=str(out_dir), sensors=cfg.sensors, runner=runner)
     bar = tqdm(
         total=cfg.frames,
         initial=sum(r["rows"] for r in done.values()),
@@ -113,53 +231,72 @@ def _build(cfg, out_dir, workers, force, executor, ray_address, runner, progress
         disable=not progress_bar,
     )
     submitted: set[str] = set()
-    interrupted = False
+    written = time.monotonic()  # when the manifest was last written
     try:
-        while True:
-            for town_name, town_plan in plans.items():
-                for e in town_plan.episodes:
-                    if e.episode_id not in submitted and not is_done(e, done):
-                        pool.submit(e, towns[town_name])
-                        submitted.add(e.episode_id)
-                        credited[e.episode_id] = 0
-                        asked[e.episode_id] = e.n_frames
-            if not pool.busy():
-                break
-            for kind, eid, payload in pool.poll(timeout=0.2):
-                if kind == "progress" and eid in credited:
-                    # recorded states, capped at the rows asked (the last few states only give
-                    # the future of earlier frames); corrected to the real rows when done.
-                    add = max(0, min(payload, asked[eid] - credited[eid]))
-                    credited[eid] += add
-                    bar.update(add)
-                elif kind == "done":
-                    record = payload
+        pool = executors.make(
+            options.executor,
+            task,
+            workers=options.workers,
+            ray_address=options.ray_address,
+            retries=options.retries,
+            stall_s=options.stall_s,
+            max_tasks_per_worker=options.max_episodes_per_worker,
+            noun="episode",
+        )
+        with pool:
+            while True:
+                for town_name, town_plan in plans.items():
+                    for e in town_plan.episodes:
+                        if e.episode_id not in submitted and not is_done(e, done):
+                            pool.submit(e.episode_id, (e, towns[town_name]))
+                            submitted.add(e.episode_id)
+                            credited[e.episode_id] = 0
+                            asked[e.episode_id] = e.n_frames
+                if not pool.pending():
+                    break
+                for ev in pool.events(timeout_s=0.5):
+                    eid = ev.key
+                    if isinstance(ev, executors.Progress):
+                        # recorded states, capped at the rows asked (the last few states only
+                        # give the future of earlier frames); corrected to the real rows when
+                        # done. A retried episode counts again from 0: the cap still holds.
+                        add = max(0, min(ev.amount, asked[eid] - credited[eid]))
+                        credited[eid] += add
+                        bar.update(add)
+                        continue
+                    record = dict(ev.result)
                     bar.update(record["rows"] - credited.pop(eid, 0))
-                    run_info = record.pop("_run")
-                    for k, v in run_info["timing"].items():
+                    for k, v in record.pop("_timing").items():
                         stage[k] += v
-                    key = f"{run_info['host']}:{run_info['pid']}"
-                    report.peak_rss_mb[key] = max(
-                        report.peak_rss_mb.get(key, 0.0), run_info["peak_rss_mb"]
+                    report.peak_rss_mb[ev.worker] = max(
+                        report.peak_rss_mb.get(ev.worker, 0.0), ev.peak_rss_mb
                     )
                     report.new_frames += record["rows"]
+                    report.episode_log.append((time.perf_counter() - start, record["rows"]))
                     done[eid] = {**record, "status": "done"}
                     plans = plan(cfg, done)
-                    run["elapsed_s"] = time.perf_counter() - start
-                    shards.write_json(make_manifest(cfg, plans, done, run), out_dir / MANIFEST)
-    except KeyboardInterrupt:
-        interrupted = True
+                    if time.monotonic() - written >= MANIFEST_EVERY_S:
+                        run["elapsed_s"] = time.perf_counter() - start
+                        shards.write_json(make_manifest(cfg, plans, done, run), out_dir / MANIFEST)
+                        written = time.monotonic()
+    except (KeyboardInterrupt, executors.ExecutorError) as e:
+        bar.close()
+        run["elapsed_s"] = time.perf_counter() - start
+        shards.write_json(make_manifest(cfg, plans, done, run), out_dir / MANIFEST)
+        shards.remove_temporaries(out_dir)  # the stopped workers' unfinished shards
+        n_done = sum(r["rows"] for r in done.values())
+        what = "stopped (SIGTERM)" if isinstance(e, executors.Terminated) else "stopped"
+        if isinstance(e, executors.ExecutorError):
+            raise executors.ExecutorError(
+                f"{e}; stopped with {n_done} of {cfg.frames} frames done; {RESUME}", e.keys
+            ) from None
+        print(
+            f"datagen build: {what} with {n_done} of {cfg.frames} frames done; {RESUME}",
+            file=sys.stderr,
+        )
         raise
     finally:
         bar.close()
-        pool.close(cancel=interrupted or pool.busy())
-        if interrupted:
-            n_done = sum(r["rows"] for r in done.values())
-            print(
-                f"datagen build: stopped with {n_done} of {cfg.frames} frames done; "
-                "run the same command again to resume",
-                file=sys.stderr,
-            )
     report.elapsed_s = time.perf_counter() - start
     run.update(
         elapsed_s=report.elapsed_s,
@@ -272,6 +409,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--ray-address", default=None, help="an existing Ray cluster (default: start a local one)"
     )
+    p.add_argument(
+        "--retries",
+        type=int,
+        default=executors.RETRIES,
+        help="further attempts of an episode whose worker died (default: %(default)s)",
+    )
+    p.add_argument(
+        "--stall-timeout",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="stop when an episode reports no progress for this long (default: 10x the slowest "
+        f"episode so far, at least {executors.STALL_FLOOR_S:.0f} s)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -372,8 +523,6 @@ def resolve_towns(args) -> tuple[Town, ...]:
 def config_from_args(args) -> BuildConfig:
     if args.frames < 1:
         raise UserError(f"--frames must be at least 1, got {args.frames}")
-    if args.workers is not None and args.workers < 1:
-        raise UserError(f"--workers must be at least 1, got {args.workers}")
     if not (math.isfinite(args.episode_seconds) and args.episode_seconds >= 0.5):
         raise UserError(f"--episode-seconds must be at least 0.5, got {args.episode_seconds}")
     mix = parse_weather_mix(args.weather_mix)
@@ -388,17 +537,32 @@ def config_from_args(args) -> BuildConfig:
     )
 
 
-def run(args) -> int:
-    cfg = config_from_args(args)
-    report = build(
-        cfg,
-        args.out,
+def options_from_args(args) -> RunOptions:
+    if args.workers is not None and args.workers < 1:
+        raise UserError(f"--workers must be at least 1, got {args.workers}")
+    if args.retries < 0:
+        raise UserError(f"--retries must be at least 0, got {args.retries}")
+    stall = args.stall_timeout
+    if stall is not None and not (math.isfinite(stall) and stall > 0):
+        raise UserError(f"--stall-timeout must be a positive number of seconds, got {stall}")
+    return RunOptions(
         workers=args.workers,
-        force=args.force,
         executor=args.executor,
         ray_address=args.ray_address,
-        progress_bar=not args.no_progress,
+        retries=args.retries,
+        stall_s=stall,
     )
+
+
+def run(args) -> int:
+    cfg = config_from_args(args)
+    options = options_from_args(args)
+    try:
+        report = build(
+            cfg, args.out, force=args.force, progress_bar=not args.no_progress, options=options
+        )
+    except executors.Terminated:
+        return 128 + signal.SIGTERM  # the message is printed; the shell's code for SIGTERM
     print(summary(report))
     if report.manifest["status"] != "complete":
         print("datagen build: the dataset is incomplete (see above)", file=sys.stderr)

@@ -15,11 +15,11 @@ the exit status non-zero.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import sys
 from collections import Counter
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,6 +28,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 import schemas
+from datagen import executors
 from datagen.errors import UserError
 from schemas import codecs
 
@@ -158,17 +159,24 @@ def find_shards(root: Path) -> list[Path]:
     return out
 
 
+def _check_task(path: Path, progress, root: Path) -> ShardReport:
+    """check_shard as an executor task (datagen/executors.py)."""
+    return check_shard(path, root)
+
+
 def validate_dir(root: Path, workers: int = 1) -> tuple[list[ShardReport], list[str], int]:
     """(shard reports, dataset-level problems, total rows) for the dataset in `root`."""
     root = Path(root)
     paths = find_shards(root)
     if workers > 1 and len(paths) > 1:
-        import multiprocessing as mp
-
-        with ProcessPoolExecutor(
-            min(workers, len(paths)), mp_context=mp.get_context("spawn")
-        ) as pool:
-            reports = list(pool.map(check_shard, paths, [root] * len(paths)))
+        task = functools.partial(_check_task, root=root)
+        by_key: dict[str, ShardReport] = {}
+        with executors.stop_on_sigterm():
+            pool = executors.make("process", task, workers=min(workers, len(paths)), noun="shard")
+            with pool:
+                for done in pool.map((str(p), p) for p in paths):
+                    by_key[done.key] = done.result
+        reports = [by_key[str(p)] for p in paths]
     else:
         reports = [check_shard(p, root) for p in paths]
 
@@ -246,7 +254,7 @@ def run(args) -> int:
         reports, problems, rows = [check_shard(path)], [], 0
         rows = reports[0].rows
     else:
-        reports, problems, rows = validate_dir(path, args.workers or len(os.sched_getaffinity(0)))
+        reports, problems, rows = validate_dir(path, args.workers or executors.available_cores())
     lines = [f"{r.path}: {p}" for r in reports for p in r.problems] + problems
     for line in lines:
         print(line, file=sys.stderr)

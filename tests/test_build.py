@@ -53,7 +53,9 @@ def fake_runner(spec, sensors, progress):
             progress(1)
     table = synthetic_table(rows, spec.episode_id, spec.town, spec.weather, spec.seed % 1000)
     i = table.schema.get_field_index("behaviour")
-    table = table.set_column(i, table.schema.field(i), pa.array([spec.behaviour] * rows))
+    field = table.schema.field(i)
+    behaviour = pa.array([spec.behaviour] * rows, pa.string()).cast(field.type)
+    table = table.set_column(i, field, behaviour)
     sha = {t.name: t.network_sha256 for t in FAKE_TOWNS}[spec.town]
     meta = {**table.schema.metadata, schemas.META_NETWORK_HASH.encode(): sha.encode()}
     table = table.replace_schema_metadata(meta)
