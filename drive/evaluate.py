@@ -67,6 +67,7 @@ def drive_route(
     on_start: Callable[[], None] | None = None,
     world_options: dict | None = None,
     max_sim_s: float | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> dict:
     """Drive one route; returns (and writes) its result document.
 
@@ -131,6 +132,8 @@ def drive_route(
             if max_sim_s is not None and frame.time_s - tracker.start_time_s >= max_sim_s:
                 break
             if k % steps_per_plan == 0:
+                if progress is not None:
+                    progress(0)
                 t = time.perf_counter()
                 image_jpeg = lidar_png = None
                 if sensors is not None:
@@ -210,17 +213,33 @@ def route_score(doc: dict) -> score.RouteScore:
     )
 
 
-def execute(tasks: list[Task], fn: Callable[[Task], dict], workers: int) -> Iterable[dict]:
-    """Run fn over tasks, serially or on a process pool of `workers` (results in task order)."""
-    if workers <= 1:
-        for t in tasks:
-            yield fn(t)
-        return
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
+def route_task(task: Task, progress: Callable[[int], None]) -> dict:
+    """The executors' task function: one route; `progress(0)` at every plan (the watchdog's
+    heartbeat), `progress(1)` when done."""
+    doc = drive_route(task, progress=progress)
+    progress(1)
+    return doc
 
-    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
-        yield from pool.map(fn, tasks)
+
+def execute(
+    tasks: list[Task], workers: int, executor: str = "process", ray_address: str | None = None
+) -> Iterable[dict]:
+    """Drive the tasks (datagen.executors: a supervised process pool or Ray, as every parallel
+    command), serially in this process with one process worker; results as routes finish."""
+    if workers <= 1 and executor == "process":
+        for t in tasks:
+            yield drive_route(t)
+        return
+    from datagen import executors
+
+    with (
+        executors.stop_on_sigterm(),
+        executors.make(
+            executor, route_task, workers=workers, ray_address=ray_address, noun="route"
+        ) as ex,
+    ):
+        for done in ex.map((t.route.route_id, t) for t in tasks):
+            yield done.result
 
 
 def summary_doc(name: str, docs: list[dict], baseline: dict[str, dict] | None = None) -> dict:
@@ -297,12 +316,14 @@ def run(args) -> int:
     ]
     from tqdm import tqdm
 
-    docs = []
+    docs: list[dict] = []
     with tqdm(total=len(tasks), desc=f"drive {spec.name}", unit="route") as bar:
-        for doc in execute(tasks, drive_route, args.workers):
+        for doc in execute(tasks, args.workers, args.executor, args.ray_address):
             docs.append(doc)
             bar.update()
             bar.set_postfix(ds=f"{doc['ds']:.1f}", last=doc["ended"])
+    order = {t.route.route_id: i for i, t in enumerate(tasks)}
+    docs.sort(key=lambda d: order[d["route"]["route_id"]])  # as the route file lists them
     summary = summary_doc(name, docs, baseline)
     _write_json(out / "summary.json", summary)
     text = format_summary(summary)
