@@ -197,6 +197,8 @@ def drive_route(
         "distance_m": round(tracker.distance_m, 3),
         "min_ttc_s": None if not np.isfinite(tracker.min_ttc_s) else round(tracker.min_ttc_s, 2),
         "traffic_delay_s": round(tracker.traffic_delay_s, 3),
+        # per simulated second: comparable between drives of different length
+        "traffic_delay_rate": round(tracker.traffic_delay_s / max(sim_s, 1e-6), 4),
         "sim_s": round(sim_s, 2),
         "ended": tracker.ended or (f"world_{world_end}" if world_end else "max_sim_s"),
         "end_detail": world_detail if tracker.ended is None else "",
@@ -242,6 +244,11 @@ def execute(
             yield done.result
 
 
+def _delay_rate(doc: dict) -> float:
+    """Traffic delay per simulated second of a route result."""
+    return doc["traffic_delay_s"] / max(doc["sim_s"], 1e-6)
+
+
 def summary_doc(name: str, docs: list[dict], baseline: dict[str, dict] | None = None) -> dict:
     """Aggregates of a run: the Summary, plus the extra measures over routes."""
     s = score.summarise([route_score(d) for d in docs])
@@ -252,16 +259,17 @@ def summary_doc(name: str, docs: list[dict], baseline: dict[str, dict] | None = 
         **{k: v for k, v in asdict(s).items()},
         "min_ttc_s_median": float(np.median(ttc)) if ttc else None,
         "traffic_delay_s_mean": float(np.mean([d["traffic_delay_s"] for d in docs])),
+        "traffic_delay_rate_mean": float(np.mean([_delay_rate(d) for d in docs])),
         "sim_s": float(sum(d["sim_s"] for d in docs)),
         "wall_s": float(sum(d["timing"]["total"] for d in docs)),
     }
     if baseline:
         delta = [
-            d["traffic_delay_s"] - baseline[d["route"]["route_id"]]["traffic_delay_s"]
+            _delay_rate(d) - _delay_rate(baseline[d["route"]["route_id"]])
             for d in docs
             if d["route"]["route_id"] in baseline
         ]
-        out["traffic_delay_vs_baseline_s_mean"] = float(np.mean(delta)) if delta else None
+        out["traffic_delay_rate_vs_baseline_mean"] = float(np.mean(delta)) if delta else None
     return out
 
 
@@ -274,9 +282,12 @@ def format_summary(doc: dict) -> str:
     )
     ttc = doc["min_ttc_s_median"]
     extra = f"median min TTC {ttc:.1f} s" if ttc is not None else "no TTC below 5 s"
-    extra += f", mean traffic delay {doc['traffic_delay_s_mean']:.1f} vehicle-s per route"
-    if doc.get("traffic_delay_vs_baseline_s_mean") is not None:
-        extra += f" ({doc['traffic_delay_vs_baseline_s_mean']:+.1f} vs the baseline)"
+    extra += (
+        f", traffic delay {doc['traffic_delay_s_mean']:.1f} vehicle-s per route, "
+        f"{doc['traffic_delay_rate_mean']:.2f} vehicle-s per second driven"
+    )
+    if doc.get("traffic_delay_rate_vs_baseline_mean") is not None:
+        extra += f" ({doc['traffic_delay_rate_vs_baseline_mean']:+.2f} vs the baseline)"
     lines.append(extra)
     return "\n".join(lines)
 

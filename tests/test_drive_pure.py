@@ -297,6 +297,7 @@ def test_summary_of_hundreds_of_routes_is_the_mean_of_their_scores():
                 "off_route_share": s.off_route_share,
                 "min_ttc_s": None if i % 3 else 1.5,
                 "traffic_delay_s": float(i),
+                "traffic_delay_rate": float(i) / 10.0,
                 "sim_s": 10.0,
                 "timing": {"total": 1.0},
             }
@@ -304,6 +305,6 @@ def test_summary_of_hundreds_of_routes_is_the_mean_of_their_scores():
     out = summary_doc("many", docs, baseline={d["route"]["route_id"]: d for d in docs[:10]})
     ds = [score.score_route(d["rc"], d["counts"], d["off_route_share"], 500.0).ds for d in docs]
     assert out["n_routes"] == 400 and out["ds"] == pytest.approx(np.mean(ds))
-    assert out["traffic_delay_vs_baseline_s_mean"] == 0.0
+    assert out["traffic_delay_rate_vs_baseline_mean"] == 0.0
     assert out["min_ttc_s_median"] == 1.5
     assert "400 routes" in format_summary(out)
