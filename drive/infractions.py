@@ -254,7 +254,7 @@ class InfractionTracker:
         if touching and not self._layout_touching:
             self._add("collision_layout", frame, "kerb" if on_kerb else "obstacle")
         self._layout_touching = touching
-        off = not self.layout.on_road(p.x_m, p.y_m)
+        off = not self.layout.on_road(p.x_m, p.y_m, on_kerb)
         if off and not self._off_road:
             self._add("off_road", frame)
         self._off_road = off
