@@ -45,6 +45,7 @@ bench: venv
 	$(BIN)/python bench/sim.py
 	$(BIN)/python bench/build.py
 	$(BIN)/python bench/train.py
+	$(BIN)/python bench/drive.py
 
 clean:
 	rm -rf $(VENV) runs

@@ -26,6 +26,10 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--routes", required=True, type=Path, help="route file (drive routes)")
     e.add_argument("--out", required=True, type=Path, help="results directory")
     e.add_argument("--workers", type=int, default=1, help="routes driven in parallel")
+    e.add_argument(
+        "--executor", default="process", choices=("process", "ray"), help="where workers run"
+    )
+    e.add_argument("--ray-address", default=None, help="an existing Ray cluster")
     e.add_argument("--record", type=int, default=0, help="MP4 videos of the first N routes")
     e.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
     e.add_argument("--net", type=Path, default=None, help="the network of a --net route file")

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from datagen.episode import HISTORY  # past LiDAR sweeps in the BEV: t-1, t-2
 from datagen.errors import UserError
 from drive import score
 from drive.controller import Controller, Plan, VehicleState, bicycle_step
@@ -36,7 +37,10 @@ from drive.routes import Route, resolve_net
 
 PLAN_PERIOD_S = 0.5  # the policy plans at the data's 2 Hz
 STEP_S = 0.1  # SUMO step: the controller and the infraction tracker run every step
-HISTORY = 2  # past LiDAR sweeps in the BEV (datagen.episode.HISTORY)
+# The expert's world gives up on an ego that stands 80 s or that SUMO teleports out of a jam:
+# for the score that is the agent blocked.
+WORLD_BLOCKED = ("blocked", "teleported")
+_LAYOUTS: dict = {}  # network sha256 -> drive.layout.Layout of this process
 
 
 @dataclass(frozen=True)
@@ -63,6 +67,7 @@ def drive_route(
     on_start: Callable[[], None] | None = None,
     world_options: dict | None = None,
     max_sim_s: float | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> dict:
     """Drive one route; returns (and writes) its result document.
 
@@ -85,7 +90,10 @@ def drive_route(
     net = resolve_net(route, Path(task.net_override) if task.net_override else None)
     geom = route_geometry(net, route.edges)
     static = load_static_scene(net)
-    layout = Layout.from_static(static)
+    layout = _LAYOUTS.get(static.network_sha256)
+    if layout is None:  # one town per worker at a time, as the static scene's cache
+        _LAYOUTS.clear()
+        layout = _LAYOUTS[static.network_sha256] = Layout.from_static(static)
     sensor_cfg = SensorConfig()
     model = ModelPolicy(spec, sensor_cfg.to_dict()) if spec.kind == "ckpt" else None
     need_sensors = model is not None or task.record
@@ -116,13 +124,16 @@ def drive_route(
         k = 0
         while True:
             t = time.perf_counter()
-            tracker.step(frame, STEP_S)
+            truth = world.truth()
+            tracker.step(frame, STEP_S, light=(truth.light, truth.light_distance_m))
             timing["judge"] += time.perf_counter() - t
             if tracker.ended is not None or world.ended is not None:
                 break
             if max_sim_s is not None and frame.time_s - tracker.start_time_s >= max_sim_s:
                 break
             if k % steps_per_plan == 0:
+                if progress is not None:
+                    progress(0)
                 t = time.perf_counter()
                 image_jpeg = lidar_png = None
                 if sensors is not None:
@@ -153,6 +164,9 @@ def drive_route(
                 vehicle = bicycle_step(vehicle, ctrl, STEP_S)
                 world.place_ego(vehicle.pose, vehicle.speed_mps)
             world.step()
+            if world.ended is not None:  # SUMO may have taken the ego out: no state to read
+                timing["sim"] += time.perf_counter() - t
+                break
             frame = world.state()
             if plan is None:  # the expert drives: follow its state
                 vehicle = VehicleState(frame.ego.pose, frame.ego.speed_mps)
@@ -160,6 +174,8 @@ def drive_route(
             k += 1
         world_end = world.ended
         world_detail = world.end_detail
+        if tracker.ended is None and world_end in WORLD_BLOCKED:
+            tracker.end("agent_blocked", frame, f"{world_end}: {world_detail}")
         sim_s = frame.time_s - (tracker.start_time_s or frame.time_s)
     if recorder is not None:
         recorder.close()
@@ -181,6 +197,8 @@ def drive_route(
         "distance_m": round(tracker.distance_m, 3),
         "min_ttc_s": None if not np.isfinite(tracker.min_ttc_s) else round(tracker.min_ttc_s, 2),
         "traffic_delay_s": round(tracker.traffic_delay_s, 3),
+        # per simulated second: comparable between drives of different length
+        "traffic_delay_rate": round(tracker.traffic_delay_s / max(sim_s, 1e-6), 4),
         "sim_s": round(sim_s, 2),
         "ended": tracker.ended or (f"world_{world_end}" if world_end else "max_sim_s"),
         "end_detail": world_detail if tracker.ended is None else "",
@@ -197,17 +215,38 @@ def route_score(doc: dict) -> score.RouteScore:
     )
 
 
-def execute(tasks: list[Task], fn: Callable[[Task], dict], workers: int) -> Iterable[dict]:
-    """Run fn over tasks, serially or on a process pool of `workers` (results in task order)."""
-    if workers <= 1:
-        for t in tasks:
-            yield fn(t)
-        return
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
+def route_task(task: Task, progress: Callable[[int], None]) -> dict:
+    """The executors' task function: one route; `progress(0)` at every plan (the watchdog's
+    heartbeat), `progress(1)` when done."""
+    doc = drive_route(task, progress=progress)
+    progress(1)
+    return doc
 
-    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
-        yield from pool.map(fn, tasks)
+
+def execute(
+    tasks: list[Task], workers: int, executor: str = "process", ray_address: str | None = None
+) -> Iterable[dict]:
+    """Drive the tasks (datagen.executors: a supervised process pool or Ray, as every parallel
+    command), serially in this process with one process worker; results as routes finish."""
+    if workers <= 1 and executor == "process":
+        for t in tasks:
+            yield drive_route(t)
+        return
+    from datagen import executors
+
+    with (
+        executors.stop_on_sigterm(),
+        executors.make(
+            executor, route_task, workers=workers, ray_address=ray_address, noun="route"
+        ) as ex,
+    ):
+        for done in ex.map((t.route.route_id, t) for t in tasks):
+            yield done.result
+
+
+def _delay_rate(doc: dict) -> float:
+    """Traffic delay per simulated second of a route result."""
+    return doc["traffic_delay_s"] / max(doc["sim_s"], 1e-6)
 
 
 def summary_doc(name: str, docs: list[dict], baseline: dict[str, dict] | None = None) -> dict:
@@ -220,16 +259,17 @@ def summary_doc(name: str, docs: list[dict], baseline: dict[str, dict] | None = 
         **{k: v for k, v in asdict(s).items()},
         "min_ttc_s_median": float(np.median(ttc)) if ttc else None,
         "traffic_delay_s_mean": float(np.mean([d["traffic_delay_s"] for d in docs])),
+        "traffic_delay_rate_mean": float(np.mean([_delay_rate(d) for d in docs])),
         "sim_s": float(sum(d["sim_s"] for d in docs)),
         "wall_s": float(sum(d["timing"]["total"] for d in docs)),
     }
     if baseline:
         delta = [
-            d["traffic_delay_s"] - baseline[d["route"]["route_id"]]["traffic_delay_s"]
+            _delay_rate(d) - _delay_rate(baseline[d["route"]["route_id"]])
             for d in docs
             if d["route"]["route_id"] in baseline
         ]
-        out["traffic_delay_vs_baseline_s_mean"] = float(np.mean(delta)) if delta else None
+        out["traffic_delay_rate_vs_baseline_mean"] = float(np.mean(delta)) if delta else None
     return out
 
 
@@ -242,9 +282,12 @@ def format_summary(doc: dict) -> str:
     )
     ttc = doc["min_ttc_s_median"]
     extra = f"median min TTC {ttc:.1f} s" if ttc is not None else "no TTC below 5 s"
-    extra += f", mean traffic delay {doc['traffic_delay_s_mean']:.1f} vehicle-s per route"
-    if doc.get("traffic_delay_vs_baseline_s_mean") is not None:
-        extra += f" ({doc['traffic_delay_vs_baseline_s_mean']:+.1f} vs the baseline)"
+    extra += (
+        f", traffic delay {doc['traffic_delay_s_mean']:.1f} vehicle-s per route, "
+        f"{doc['traffic_delay_rate_mean']:.2f} vehicle-s per second driven"
+    )
+    if doc.get("traffic_delay_rate_vs_baseline_mean") is not None:
+        extra += f" ({doc['traffic_delay_rate_vs_baseline_mean']:+.2f} vs the baseline)"
     lines.append(extra)
     return "\n".join(lines)
 
@@ -284,12 +327,14 @@ def run(args) -> int:
     ]
     from tqdm import tqdm
 
-    docs = []
+    docs: list[dict] = []
     with tqdm(total=len(tasks), desc=f"drive {spec.name}", unit="route") as bar:
-        for doc in execute(tasks, drive_route, args.workers):
+        for doc in execute(tasks, args.workers, args.executor, args.ray_address):
             docs.append(doc)
             bar.update()
             bar.set_postfix(ds=f"{doc['ds']:.1f}", last=doc["ended"])
+    order = {t.route.route_id: i for i, t in enumerate(tasks)}
+    docs.sort(key=lambda d: order[d["route"]["route_id"]])  # as the route file lists them
     summary = summary_doc(name, docs, baseline)
     _write_json(out / "summary.json", summary)
     text = format_summary(summary)

@@ -11,8 +11,8 @@ kerb, an off-road event when the ego's centre leaves the road. Per type:
   moveToXY, eclipse-sumo/sumo#6327, so SUMO's own collision list is not used).
 - collision_layout: see above.
 - red_light: the ego's front crosses a signalised stop line of the route while the signal
-  governing its lane (FrameState.traffic_light, read within RED_LIGHT_NEAR_M of the line in the
-  step before) is red. SUMO raises no red-light event of its own.
+  governing its lane (datagen.world.EgoTruth's light, or FrameState.traffic_light; read within
+  RED_LIGHT_NEAR_M of the line in the step before) is red.
 - stop_sign: the ego's front crosses a stop-controlled stop line without having been slower
   than BLOCKED_SPEED_MPS while within STOP_ZONE_M before it (the leaderboard's RunningStopTest).
 - off_road: the ego's centre leaves the drivable area; `off_road_share` is the share of the
@@ -138,6 +138,7 @@ class InfractionTracker:
     _slow_s: float = 0.0
     _zone_min_speed: dict = field(default_factory=dict)
     _top_speed: dict = field(default_factory=dict)
+    _light: tuple = ("none", None)
 
     @property
     def route_completion_pct(self) -> float:
@@ -148,13 +149,21 @@ class InfractionTracker:
         p = frame.ego.pose
         self.events.append(Event(kind, frame.time_s, p.x_m, p.y_m, detail))
 
+    def end(self, kind: str, frame: FrameState, detail: str = "") -> None:
+        """End the route by an infraction found outside the tracker (e.g. the world's own)."""
+        if self.ended is None:
+            self._add(kind, frame, detail)
+            self.ended = kind
+
     def counts(self) -> dict[str, int]:
         out: dict[str, int] = {}
         for e in self.events:
             out[e.kind] = out.get(e.kind, 0) + 1
         return out
 
-    def step(self, frame: FrameState, dt_s: float = 0.1) -> None:
+    def step(self, frame: FrameState, dt_s: float = 0.1, light=None) -> None:
+        """Judge one step. `light`: (state, stop-line distance m or None) of the signal of the
+        ego's lane at any range (datagen.world.EgoTruth); default: the frame's, within 30 m."""
         if self.ended is not None:
             return
         ego = frame.ego
@@ -187,6 +196,7 @@ class InfractionTracker:
         if self._front_s is not None and front_lat < DEVIATION_M:
             self._stop_lines(frame, self._front_s, front_s)
         self._front_s = front_s
+        self._light = light or (frame.traffic_light, frame.light_distance_m)
         if front_lat < DEVIATION_M and front_s >= g.length_m - END_M:
             self.progress_m = g.length_m
         # beyond the leaderboard
@@ -244,7 +254,7 @@ class InfractionTracker:
         if touching and not self._layout_touching:
             self._add("collision_layout", frame, "kerb" if on_kerb else "obstacle")
         self._layout_touching = touching
-        off = not self.layout.on_road(p.x_m, p.y_m)
+        off = not self.layout.on_road(p.x_m, p.y_m, on_kerb)
         if off and not self._off_road:
             self._add("off_road", frame)
         self._off_road = off
@@ -254,7 +264,6 @@ class InfractionTracker:
             self.off_route_m += moved_m
 
     def _stop_lines(self, frame: FrameState, s0: float, s1: float) -> None:
-        last = self._last
         speed = frame.ego.speed_mps
         for k, line in enumerate(self.geometry.stop_lines):
             if line.kind == "stop" and line.s_m - STOP_ZONE_M <= s1 <= line.s_m:
@@ -262,10 +271,8 @@ class InfractionTracker:
             if not (s0 < line.s_m <= s1):
                 continue
             if line.kind == "light":
-                seen = last if last is not None else frame
-                red = seen.traffic_light == "red" and (
-                    seen.light_distance_m is not None and seen.light_distance_m <= RED_LIGHT_NEAR_M
-                )
+                state, dist = self._light  # still the step before's: the signal before crossing
+                red = state == "red" and dist is not None and dist <= RED_LIGHT_NEAR_M
                 if red:
                     self._add("red_light", frame, line.junction)
             else:

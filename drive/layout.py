@@ -75,12 +75,15 @@ class Layout:
         foot = static.triangles_m[up & solid][:, :, :2].astype(np.float64)
         return Layout(road, kerb, list(shapely.polygons(foot)) if len(foot) else [])
 
-    def on_road(self, x_m: float, y_m: float) -> bool:
-        """The point lies on the drivable area (not on a sidewalk or off the network)."""
+    def on_road(self, x_m: float, y_m: float, on_kerb: bool | None = None) -> bool:
+        """The point lies on the drivable area (not on a sidewalk or off the network);
+        `on_kerb`: `self.on_kerb(x, y)` if the caller has it already."""
         import shapely
 
+        if on_kerb is None:
+            on_kerb = self.on_kerb(x_m, y_m)
         p = shapely.Point(x_m, y_m)
-        return len(self._road.query(p, predicate="intersects")) > 0 and not self.on_kerb(x_m, y_m)
+        return not on_kerb and len(self._road.query(p, predicate="intersects")) > 0
 
     def on_kerb(self, x_m: float, y_m: float) -> bool:
         """The point lies on a sidewalk or walking area."""

@@ -52,11 +52,32 @@ def test_same_route_and_seed_give_identical_numbers(route_file, expert_docs, tmp
     assert _numbers(on_disk) == _numbers(again)
 
 
-def test_constant_scores_far_below_the_expert(route_file, expert_docs, tmp_path):
+@pytest.fixture(scope="module")
+def constant_docs(route_file, tmp_path_factory):
+    out = tmp_path_factory.mktemp("constant")
     _, routes = load_routes(route_file)
-    docs = [drive_route(Task(r, PolicySpec("constant"), str(tmp_path), False)) for r in routes]
+    return [drive_route(Task(r, PolicySpec("constant"), str(out), False)) for r in routes]
+
+
+def test_constant_scores_far_below_the_expert(constant_docs, expert_docs):
+    docs = constant_docs
     ds = summary_doc("gs", docs)["ds"]
     assert ds < 0.5 * summary_doc("gs", expert_docs)["ds"], [(d["ds"], d["ended"]) for d in docs]
+
+
+def test_two_workers_give_the_serial_numbers(route_file, constant_docs, tmp_path, capsys):
+    out = tmp_path / "two"
+    argv = ["eval", "--policy", "constant", "--routes", str(route_file), "--out", str(out)]
+    assert cli.main(argv + ["--workers", "2", "--record", "1"]) == 0
+    assert "DS" in capsys.readouterr().out
+    for d in constant_docs:
+        got = json.loads((out / "routes" / f"{d['route']['route_id']}.json").read_text())
+        assert _numbers(got) == _numbers(d)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["ds"] == pytest.approx(summary_doc("gs", constant_docs)["ds"])
+    videos = sorted((out / "videos").glob("*.mp4"))
+    assert [v.name for v in videos] == [f"{constant_docs[0]['route']['route_id']}.mp4"]
+    assert videos[0].stat().st_size > 10_000
 
 
 def _error(capsys, argv):

@@ -277,3 +277,34 @@ def test_standing_still_for_90_s_is_agent_blocked():
     t = _drive(InfractionTracker(geom, _layout()), frames)
     assert t.ended == "agent_blocked" and t.counts() == {"agent_blocked": 1}
     assert t.events[0].time_s == pytest.approx(90.0, abs=0.15)
+
+
+def test_summary_of_hundreds_of_routes_is_the_mean_of_their_scores():
+    from drive.evaluate import format_summary, summary_doc
+
+    rng = np.random.default_rng(0)
+    docs = []
+    for i in range(400):
+        counts = {k: int(rng.integers(0, 3)) for k in score.INFRACTION_TYPES}
+        rc = float(rng.uniform(0, 100))
+        s = score.score_route(rc, counts, float(rng.uniform(0, 0.2)), 500.0)
+        docs.append(
+            {
+                "route": {"route_id": f"r{i}", "length_m": 500.0},
+                "policy": "x",
+                "rc": s.rc,
+                "counts": s.counts,
+                "off_route_share": s.off_route_share,
+                "min_ttc_s": None if i % 3 else 1.5,
+                "traffic_delay_s": float(i),
+                "traffic_delay_rate": float(i) / 10.0,
+                "sim_s": 10.0,
+                "timing": {"total": 1.0},
+            }
+        )
+    out = summary_doc("many", docs, baseline={d["route"]["route_id"]: d for d in docs[:10]})
+    ds = [score.score_route(d["rc"], d["counts"], d["off_route_share"], 500.0).ds for d in docs]
+    assert out["n_routes"] == 400 and out["ds"] == pytest.approx(np.mean(ds))
+    assert out["traffic_delay_rate_vs_baseline_mean"] == 0.0
+    assert out["min_ttc_s_median"] == 1.5
+    assert "400 routes" in format_summary(out)
