@@ -362,6 +362,31 @@ def test_a_worker_killed_mid_episode_is_retried_and_the_dataset_is_exact(
     assert _content(out) == reference
 
 
+def test_kill_9_of_a_worker_alone_is_retried_and_the_build_finishes_exact(tmp_path, reference):
+    out = tmp_path / "out"
+    proc = _spawn_fake_build(out, {"FAKE_FRAME_SECONDS": "0.1"})
+    _wait_for_shards(out, 2, proc, timeout_s=120)
+    workers = [p for p in _children(proc.pid) if "spawn_main" in " ".join(_cmdline(p))]
+    assert workers, "no worker process found"
+    os.kill(workers[0], signal.SIGKILL)  # one worker, mid-episode (1.6 s an episode)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 0, stderr.decode()  # its episode (if it had one) ran again
+    assert _content(out) == reference
+
+
+def _children(pid: int) -> list[int]:
+    with open(f"/proc/{pid}/task/{pid}/children") as f:
+        return [int(c) for c in f.read().split()]
+
+
+def _cmdline(pid: int) -> list[str]:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return f.read().decode(errors="replace").split("\0")
+    except OSError:
+        return []
+
+
 def test_a_worker_that_always_dies_stops_the_build_clearly_and_the_rerun_is_exact(
     tmp_path, reference
 ):
