@@ -17,9 +17,12 @@ though how far an untrained model drives does (a route may end early: that is re
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tempfile
 from pathlib import Path
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as drive/cli.py: before torch is imported
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 

@@ -8,8 +8,13 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
+
+# As in `train` (training/cli.py): OpenMP threads that spin while they wait take the cores SUMO,
+# the ray caster and the other route workers need; set before torch is imported.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from datagen.errors import UserError
 
