@@ -40,7 +40,7 @@ STAGES = ("sim", "scene", "lidar", "camera", "labels", "encode")
 
 DATA_VERSION = 4
 """What the generator writes, beyond the scene (bump it with every change of shard bytes for the
-same seed; tests/test_identical.py pins them; data/_README.md lists the changes):
+same seed; tests/test_identical.py pins them; data/README.md lists the changes):
 1 the first release; 2 PNG columns encoded with no/UP row filter + RLE (same decoded arrays);
 3 the `lidar_ground_t` column (schema 1.1); 4 every signal head lit with its own light's real
 state at any distance (was: only the heads showing the ego's governing light within 30 m)."""

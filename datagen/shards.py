@@ -1,7 +1,7 @@
 """Crash-safe Parquet shards: one file per episode, visible only once complete.
 
 A shard is written under a temporary name that starts with `_` in the same directory (readers
-skip `_` files, see data/_README.md), flushed and fsync'ed, renamed onto its final name (atomic on
+skip `_` files, see data/README.md), flushed and fsync'ed, renamed onto its final name (atomic on
 POSIX within one filesystem), and the directory is fsync'ed so the rename itself survives a power
 cut. A build killed at any instant therefore leaves complete shards and `_*.tmp` debris, never a
 truncated `.parquet`; `remove_temporaries` sweeps the debris on resume. The same protocol writes

@@ -3,7 +3,7 @@ by the sha256 of its shard files, so a pure speed-up or a pure move cannot chang
 
 How to update the stored hashes: ONLY together with a change of what the data is, i.e. a bump
 of the generator version (datagen.episode.DATA_VERSION / scene.SCENE_VERSION) or of the
-schema version, documented in data/_README.md. Run
+schema version, documented in data/README.md. Run
     PYTHONPATH=$PWD .venv/bin/python -m tests.test_identical
 which prints the new digests (and one per column, to see what changed), and paste them below.
 A mismatch without such a bump is a bug in the change under test, not in this file.
