@@ -15,6 +15,7 @@ from datagen.state import Pose
 from datagen.towns import TOWN_NAMES, build_plain_network, town_net_path
 from datagen.world import (
     AGENT_RADIUS_M,
+    COLLISION_DROP_S,
     EGO_DIMS_M,
     EGO_ID,
     EgoCommand,
@@ -265,7 +266,8 @@ def test_same_seed_same_trajectory():
 def test_frame_state_conventions():
     cfg = WorldConfig(town_net_path("downtown"), seed=2, weather="sunny", behaviour="normal")
     with World(cfg) as world:
-        frames = list(record(world, 40))
+        # no hold-back: the last frame is SUMO's state now, compared with libsumo below
+        frames = list(record(world, 40, drop_before_collision_s=0.0))
         assert [round(f.time_s - frames[0].time_s, 3) for f in frames] == [
             0.5 * k for k in range(40)
         ]
@@ -359,3 +361,46 @@ def test_traffic_sees_an_externally_placed_ego(nets):
         gap = stand.x_m - EGO_DIMS_M[0] / 2 - ls.vehicle.getPosition("follower")[0]
         assert ls.vehicle.getSpeed("follower") < 0.1 and 0.0 < gap < 5.0
         assert world.stats["collisions"] == 0
+
+
+def test_record_drops_the_frames_before_an_ego_collision(nets):
+    with World(_quiet(nets["crossing"], ("AM", "MB"))) as world:
+        frames = []
+        for frame in record(world, 1000):
+            if not frames:  # a car that ignores every safety rule rams the ego from behind
+                ls.route.add("r_ram", ["AM", "MB"])
+                ls.vehicle.add("ram", "r_ram", typeID="car", departSpeed="20", departPos="0")
+                ls.vehicle.setSpeedMode("ram", 0)
+                ls.vehicle.setSpeed("ram", 25.0)
+            frames.append(frame)
+        assert world.ended == "collision" and "ram" in world.end_detail
+        crash_s = world.time_s
+        assert frames, "frames long before the collision are kept"
+        assert frames[-1].time_s <= crash_s - COLLISION_DROP_S
+        assert world.stats["dropped_frames"] == round(COLLISION_DROP_S / 0.5)
+    # without a collision nothing is dropped: every state up to the end is yielded
+    with World(_quiet(nets["stop"], ("WC", "CE"))) as world:
+        frames = list(record(world, 10_000))
+        assert world.ended == "route_end" and world.stats["dropped_frames"] == 0
+        assert frames[-1].time_s == pytest.approx(world.time_s, abs=0.51)
+
+
+# Episodes that ended in an ego collision before the expert yielded to people stepping onto a
+# crossing on its path and kept junctions clear (town, SUMO seed, weather, behaviour, seconds).
+FORMER_COLLISIONS = [
+    # datagen build --towns 1 --frames 1440 --seed 22, grid_small-22-0000: "ego hit p130
+    # (crossing)" at 123 s, the person stepping off a walking area onto the exit crossing
+    ("grid_small", 1486197343, "sunny", "normal", 126.0),
+    # datagen build --towns 8 --frames 1920 --episode-seconds 120 --seed 11, spider-11-0001:
+    # "v77 hit ego (junction)" at 22.7 s, the ego waiting inside the junction to turn left
+    ("spider", 2138764776, "cloudy", "aggressive", 30.0),
+]
+
+
+@pytest.mark.parametrize("town, seed, weather, behaviour, seconds", FORMER_COLLISIONS)
+def test_former_collision_episodes_now_drive_without_one(town, seed, weather, behaviour, seconds):
+    cfg = WorldConfig(town_net_path(town), seed=seed, weather=weather, behaviour=behaviour)
+    with World(cfg) as world:
+        world.advance(seconds)
+        assert world.stats["collisions"] == 0, world.end_detail
+        assert world.stats["sim_s"] == pytest.approx(seconds)

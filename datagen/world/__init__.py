@@ -34,6 +34,7 @@ from datagen.world.traffic import PED_REMOVE_M, PED_SPAWN_M, VEH_REMOVE_M, VEH_S
 from datagen.world.world import (
     AGENT_RADIUS_M,
     BLOCKED_S,
+    COLLISION_DROP_S,
     EGO_DRIVERS,
     WARMUP_S,
     EgoCommand,
@@ -46,6 +47,7 @@ from datagen.world.world import (
 __all__ = [
     "AGENT_RADIUS_M",
     "BLOCKED_S",
+    "COLLISION_DROP_S",
     "COMMAND_RANGE_M",
     "EGO_DECEL_SLACK",
     "EGO_DIMS_M",

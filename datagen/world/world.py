@@ -19,6 +19,16 @@ SUMO's safety checks brake harder (up to emergencyDecel), i.e. only to avoid a c
 step's reason names what it yields to (`junction`, `stop_sign`, `pedestrian`, `vehicle`). Lane
 choice and lane changes stay with SUMO's lane-change model.
 
+On top of SUMO's checks the expert yields to people on, or about to step onto, a crossing its
+path crosses (perception.crossing_obstacles: their next edge is the crossing), and keeps
+junctions clear (expert.junction_rule): it does not enter one whose exit is blocked, nor begin a
+turn that would give way at a waiting point inside it while a foe vehicle is near (waiting
+there, the car's front can reach into the foe's lane).
+
+What the dataset keeps of an episode that still ends in an ego collision: `record` holds every
+state back COLLISION_DROP_S (5 s) and drops the held states when the collision comes, so no
+frame shows the expert driving into it (World.dropped_frames, stats["dropped_frames"]).
+
 The ego drives a random route that is extended with a new random destination before it ends
 (`WorldConfig.reroute`); traffic lives in a bubble around it (traffic.py).
 
@@ -53,6 +63,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -73,6 +84,9 @@ from schemas import WEATHERS
 AGENT_RADIUS_M = 100.0  # agents within this distance of the ego are in FrameState.agents
 BLOCKED_S = 80.0  # ego standing this long (not at a red light) ends the episode ("blocked")
 WARMUP_S = 10.0  # traffic runs this long before the ego is inserted
+# record() drops the frames of the last 5 s before an ego collision: more than the 2 s of future
+# waypoints a frame is labelled with plus ~3 s of approach, so no frame shows driving into it.
+COLLISION_DROP_S = 5.0
 
 _log = logging.getLogger(__name__)
 _open_world: World | None = None  # libsumo runs one simulation per process
@@ -190,6 +204,7 @@ class World:
         ended: None while running, else why it ended: "route_end", "teleported", "blocked",
             "collision".
         end_detail: a sentence saying what ended it ("" while running).
+        dropped_frames: states `record` dropped before an ego collision (0 otherwise).
     """
 
     def __init__(self, config: WorldConfig):
@@ -213,6 +228,7 @@ class World:
         self.profile: Profile = PROFILES[config.behaviour]
         self.ended: str | None = None
         self.end_detail: str = ""
+        self.dropped_frames = 0
         self._rng = np.random.default_rng(config.seed)
         self._stats = _Stats()
         self._sumo: Sumo | None = None
@@ -310,6 +326,19 @@ class World:
         obstacles = perception.obstacles(
             self._snap.agents, self._is_kerb, ego.lane_id.startswith(":"), self._path, leader
         )
+        obstacles += perception.crossing_obstacles(
+            self._snap.agents, self._net, self._is_kerb, self._path, ego.speed_mps
+        )
+        junction = route.junction_ahead(ego.lane_id, self._path, self._snap.links)
+        waits_inside, foe_eta = False, None
+        if junction is not None and route.waits_inside(self._net, self._snap.links[0]):
+            waits_inside = True
+            foe_eta = perception.foe_eta_s(
+                self._snap.agents,
+                self._net,
+                route.junction_of(self._snap.links[0].via_lane_id),
+                ego.road_id,
+            )
         return expert.ExpertInput(
             speed_mps=ego.speed_mps,
             speed_limit_mps=float(limit),
@@ -321,6 +350,10 @@ class World:
             stop_distance_m=sig.stop_distance_m,
             stop_done=sig.stop_distance_m is not None and self._stop_done_lane == ego.lane_id,
             route_end_m=route_end,
+            junction_entry_m=junction[0] if junction else None,
+            junction_exit_m=junction[1] if junction else None,
+            waits_inside=waits_inside,
+            foe_eta_s=foe_eta,
         )
 
     def _set_route(self, edges: list[str] | tuple[str, ...]) -> None:
@@ -662,6 +695,7 @@ class World:
             "reasons": dict(sorted(st.reasons.items())),
             "ended": self.ended,
             "end_detail": self.end_detail,
+            "dropped_frames": self.dropped_frames,
         }
 
     def close(self) -> None:
@@ -684,12 +718,38 @@ class World:
             self.close()
 
 
-def record(world: World, n_frames: int, period_s: float = 0.5) -> Iterator[FrameState]:
+def record(
+    world: World,
+    n_frames: int,
+    period_s: float = 0.5,
+    drop_before_collision_s: float = COLLISION_DROP_S,
+) -> Iterator[FrameState]:
     """Yield `world.state()` now and every `period_s` (2 Hz by default) until `n_frames` states
-    have been yielded or the world ends (then `world.ended` says why)."""
-    for k in range(n_frames):
+    have been yielded or the world ends (then `world.ended` says why).
+
+    Each state is held back until `drop_before_collision_s` more seconds have been simulated.
+    When the episode ends in an ego collision, the states still held back -- the last
+    `drop_before_collision_s` before it -- are dropped, so no recorded frame demonstrates the
+    expert driving into the crash; any other end yields them. The states yielded are the same
+    either way (the world only runs a little ahead of the consumer).
+    """
+    hold = max(0, int(round(drop_before_collision_s / period_s)))
+    held: deque[FrameState] = deque()
+    yielded = 0
+    k = 0
+    while yielded < n_frames:
         if k:
             world.advance(period_s)
+        k += 1
         if world.ended is not None:
-            return
-        yield world.state()
+            break
+        held.append(world.state())
+        if len(held) > hold:
+            yielded += 1
+            yield held.popleft()
+    if world.ended == "collision":
+        world.dropped_frames = len(held)
+        return
+    while held and yielded < n_frames:
+        yielded += 1
+        yield held.popleft()
