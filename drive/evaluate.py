@@ -30,6 +30,7 @@ import numpy as np
 
 from datagen.episode import HISTORY  # past LiDAR sweeps in the BEV: t-1, t-2
 from datagen.errors import UserError
+from datagen.world import TELEPORT_S
 from drive import score
 from drive.controller import Controller, Plan, VehicleState, bicycle_step
 from drive.policy import PolicySpec, constant_waypoints
@@ -174,7 +175,10 @@ def drive_route(
             k += 1
         world_end = world.ended
         world_detail = world.end_detail
-        if tracker.ended is None and world_end in WORLD_BLOCKED:
+        # SUMO teleports a vehicle that has waited TELEPORT_S, a placed ego too (the world
+        # ends the drive then): standing that long is the agent blocked
+        standing = tracker.standing_s >= TELEPORT_S - 1.0
+        if tracker.ended is None and (world_end in WORLD_BLOCKED or (world_end and standing)):
             tracker.end("agent_blocked", frame, f"{world_end}: {world_detail}")
         sim_s = frame.time_s - (tracker.start_time_s or frame.time_s)
     if recorder is not None:
