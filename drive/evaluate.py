@@ -42,6 +42,7 @@ STEP_S = 0.1  # SUMO step: the controller and the infraction tracker run every s
 # for the score that is the agent blocked.
 WORLD_BLOCKED = ("blocked", "teleported")
 _LAYOUTS: dict = {}  # network sha256 -> drive.layout.Layout of this process
+_MODELS: dict = {}  # (checkpoint, device) -> drive.policy.ModelPolicy of this process
 
 
 @dataclass(frozen=True)
@@ -96,7 +97,13 @@ def drive_route(
         _LAYOUTS.clear()
         layout = _LAYOUTS[static.network_sha256] = Layout.from_static(static)
     sensor_cfg = SensorConfig()
-    model = ModelPolicy(spec, sensor_cfg.to_dict()) if spec.kind == "ckpt" else None
+    model = None
+    if spec.kind == "ckpt":  # loaded once per worker process
+        key = (spec.path, spec.device)
+        if key not in _MODELS:
+            _MODELS.clear()
+            _MODELS[key] = ModelPolicy(spec, sensor_cfg.to_dict())
+        model = _MODELS[key]
     need_sensors = model is not None or task.record
     sensors = (
         Sensors(static, sensor_cfg, route.weather, episode_rng(route.seed))
@@ -116,6 +123,7 @@ def drive_route(
         if on_start is not None:
             on_start()
         frame = world.state()
+        timing["setup"] = time.perf_counter() - t0  # the world's start-up (warm-up) included
         vehicle = VehicleState(frame.ego.pose, frame.ego.speed_mps)
         controller = Controller()
         sweeps: deque = deque(maxlen=HISTORY + 1)
