@@ -30,6 +30,7 @@ import numpy as np
 
 from datagen.episode import HISTORY  # past LiDAR sweeps in the BEV: t-1, t-2
 from datagen.errors import UserError
+from datagen.world import TELEPORT_S
 from drive import score
 from drive.controller import Controller, Plan, VehicleState, bicycle_step
 from drive.policy import PolicySpec, constant_waypoints
@@ -41,6 +42,7 @@ STEP_S = 0.1  # SUMO step: the controller and the infraction tracker run every s
 # for the score that is the agent blocked.
 WORLD_BLOCKED = ("blocked", "teleported")
 _LAYOUTS: dict = {}  # network sha256 -> drive.layout.Layout of this process
+_MODELS: dict = {}  # (checkpoint, device) -> drive.policy.ModelPolicy of this process
 
 
 @dataclass(frozen=True)
@@ -95,7 +97,13 @@ def drive_route(
         _LAYOUTS.clear()
         layout = _LAYOUTS[static.network_sha256] = Layout.from_static(static)
     sensor_cfg = SensorConfig()
-    model = ModelPolicy(spec, sensor_cfg.to_dict()) if spec.kind == "ckpt" else None
+    model = None
+    if spec.kind == "ckpt":  # loaded once per worker process
+        key = (spec.path, spec.device)
+        if key not in _MODELS:
+            _MODELS.clear()
+            _MODELS[key] = ModelPolicy(spec, sensor_cfg.to_dict())
+        model = _MODELS[key]
     need_sensors = model is not None or task.record
     sensors = (
         Sensors(static, sensor_cfg, route.weather, episode_rng(route.seed))
@@ -115,6 +123,7 @@ def drive_route(
         if on_start is not None:
             on_start()
         frame = world.state()
+        timing["setup"] = time.perf_counter() - t0  # the world's start-up (warm-up) included
         vehicle = VehicleState(frame.ego.pose, frame.ego.speed_mps)
         controller = Controller()
         sweeps: deque = deque(maxlen=HISTORY + 1)
@@ -174,7 +183,10 @@ def drive_route(
             k += 1
         world_end = world.ended
         world_detail = world.end_detail
-        if tracker.ended is None and world_end in WORLD_BLOCKED:
+        # SUMO teleports a vehicle that has waited TELEPORT_S, a placed ego too (the world
+        # ends the drive then): standing that long is the agent blocked
+        standing = tracker.standing_s >= TELEPORT_S - 1.0
+        if tracker.ended is None and (world_end in WORLD_BLOCKED or (world_end and standing)):
             tracker.end("agent_blocked", frame, f"{world_end}: {world_detail}")
         sim_s = frame.time_s - (tracker.start_time_s or frame.time_s)
     if recorder is not None:

@@ -149,6 +149,11 @@ class InfractionTracker:
         p = frame.ego.pose
         self.events.append(Event(kind, frame.time_s, p.x_m, p.y_m, detail))
 
+    @property
+    def standing_s(self) -> float:
+        """How long the ego has been slower than BLOCKED_SPEED_MPS, s."""
+        return self._slow_s
+
     def end(self, kind: str, frame: FrameState, detail: str = "") -> None:
         """End the route by an infraction found outside the tracker (e.g. the world's own)."""
         if self.ended is None:

@@ -122,3 +122,10 @@ def test_leaving_the_road_is_off_road_and_a_layout_collision(nets, tmp_path):
     assert doc["ended"] == "route_deviation" and c["route_deviation"] == 1
     assert "collision_vehicle" not in c and doc["off_road_share"] > 0.5
     assert doc["is"] < 0.65 + 1e-9
+
+
+def test_a_policy_that_never_moves_is_agent_blocked(nets, tmp_path):
+    doc = _drive(nets["light"], tmp_path, lambda f: np.zeros((4, 2)))
+    assert _counts(doc) == {"agent_blocked": 1}, doc["events"]
+    assert doc["ended"] == "agent_blocked" and doc["ds"] < 0.1
+    assert 89.0 <= doc["events"][0]["time_s"] <= 92.0
