@@ -180,7 +180,9 @@ def run(args) -> int:
     index = data.scan(args.shards)
     if not 0 <= args.frame < len(index):
         raise UserError(f"--frame {args.frame}: the shards hold frames 0..{len(index) - 1}")
-    sample = data.read_frames(index.iloc[[args.frame]], model.cfg.output_px)[0]
+    sample = data.read_frames(
+        index.iloc[[args.frame]], model.cfg.output_px, model.cfg.single_frame_lidar
+    )[0]
     inputs = [torch.as_tensor(np.asarray(sample[k]))[None] for k in INPUTS]
     out = model(*inputs)
     figure = render(sample, out, model.cfg.output_px)
