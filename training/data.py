@@ -23,6 +23,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pandas as pd
 import pyarrow as pa
@@ -156,10 +157,12 @@ def downsample_bev(classes: np.ndarray, output_px: int) -> np.ndarray:
         return classes
     if k * output_px != classes.shape[0]:
         raise ValueError(f"R = {output_px} does not divide the {classes.shape[0]} px BEV map")
-    blocks = classes.reshape(output_px, k, output_px, k)
-    lane = (blocks == LANE).any(axis=(1, 3))
-    road = (blocks >= DRIVABLE).mean(axis=(1, 3)) >= 0.5
-    return np.where(lane, LANE, np.where(road, DRIVABLE, 0)).astype(np.uint8)
+    # OpenCV's area resampling at an integer factor is the exact block mean (~0.1 ms, against
+    # ~3 ms for numpy block reductions at 256 -> 64; bench/train.py's loader figures).
+    size = (output_px, output_px)
+    lane = cv2.resize((classes == LANE).astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    road = cv2.resize((classes >= DRIVABLE).astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    return np.where(lane > 0, LANE, np.where(road >= 0.5, DRIVABLE, 0)).astype(np.uint8)
 
 
 def model_inputs(

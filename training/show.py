@@ -215,7 +215,9 @@ def run(args) -> int:
         args.frame = int(index.index.get_loc(hit[0]))
     if not 0 <= args.frame < len(index):
         raise UserError(f"--frame {args.frame}: the shards hold frames 0..{len(index) - 1}")
-    sample = data.read_frames(index.iloc[[args.frame]], model.cfg.output_px)[0]
+    sample = data.read_frames(
+        index.iloc[[args.frame]], model.cfg.output_px, model.cfg.single_frame_lidar
+    )[0]
     figure = render(sample, _forward(model, [sample]), model.cfg.output_px)
     path = Path(args.out) if args.out else Path(args.ckpt).parent / f"show-{args.frame}.png"
     try:
@@ -237,7 +239,9 @@ def write_video(model, frames, out: str | Path, speed: float = 1.0) -> int:
     fps = FRAME_RATE_HZ * speed
     with VideoWriter(out, fps) as video:
         for i in range(0, len(frames), VIDEO_BATCH):
-            samples = data.read_frames(frames.iloc[i : i + VIDEO_BATCH], model.cfg.output_px)
+            samples = data.read_frames(
+                frames.iloc[i : i + VIDEO_BATCH], model.cfg.output_px, model.cfg.single_frame_lidar
+            )
             out_batch = _forward(model, samples)
             for k, sample in enumerate(samples):
                 one = {name: value[k : k + 1] for name, value in out_batch.items()}
