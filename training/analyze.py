@@ -14,8 +14,11 @@ normalised. Three forms, each averaged over frames spread evenly over the shard 
   suggest theirs did.
 - kernel: the cosine of the two heads' learnt ECA kernels (k = 5 numbers each; frame-independent).
 
-The same figures for an untrained model of the same config (seed 0) are printed beside them as
-the reference line: what shared input statistics alone give before any task has shaped ECA.
+The same figures for an untrained model of the same config are printed beside them as the
+reference line: built with the fit's seed, it is the run's own starting point (`train fit`
+seeds torch with it before building the model), so the difference is what training changed.
+Measured on a 6-epoch tiny run: plan x BEV's centred cosine was 0.87 before training and 0.86
+after, i.e. ECA's five kernel weights per head had barely moved from their initialisation.
 
     train analyze --ckpt runs/demo/last.pt                 # frames of the fit's --shards
     train analyze --ckpt runs/demo/last.pt --shards data_test/ --frames 1000
@@ -85,7 +88,7 @@ def run(args) -> int:
         return eca_similarity(m, data.make_loader(stream, args.batch_size, 0), device)
 
     trained = measure(model)
-    torch.manual_seed(0)
+    torch.manual_seed(state.get("train_config", {}).get("seed", 0))  # as train fit builds it
     untrained = measure(IIDSU(model.cfg).to(device).eval())
     print(f"ECA channel weights vs planning's, mean over {len(picks)} frames of {shards}")
     print(

@@ -549,7 +549,12 @@ class World:
         self._plan_i, self._on_plan = i, True
         if self._sumo.ego_route()[snap.ego.route_index :] == self._route[i:]:
             return False
-        self._sumo.set_ego_route(self._route[i:])
+        try:
+            self._sumo.set_ego_route(self._route[i:])
+        except self._sumo.TraCIException:
+            # SUMO's own current edge may differ from the snapshot's (seen with a placed ego
+            # on the opposite direction's edge): keep its route this step, try again next one
+            return False
         return True
 
     def _end(self, why: str, detail: str) -> None:
