@@ -25,7 +25,13 @@ Rules:
                   stop for `STOP_WAIT_S` and until no other vehicle is inside the junction), then
                   SUMO's right-of-way model decides when to enter
     route_end     stop at the end of a route that cannot be extended
-    junction      (reported by world.py when SUMO's right-of-way model holds the ego back)
+    junction      keep the junction clear: stop before its entry while something slow or
+                  standing (a vehicle, or a person on a crossing, or crossing traffic) inside
+                  it or beyond its exit leaves no room for the whole car past the exit, or
+                  while a foe vehicle is within FOE_GAP_S of a junction where the ego's turn
+                  would give way inside it; unless the car can no longer stop before the
+                  entry (then it goes on); also reported
+                  by world.py when SUMO's right-of-way model holds the ego back
 """
 
 from __future__ import annotations
@@ -40,6 +46,14 @@ STOP_SIGN_MARGIN_M = 0.5  # ... and this far before a stop sign's line
 STOP_WAIT_S = 1.0  # a full stop at a stop sign lasts at least this long
 STOPPED_MPS = 0.1  # "stopped" (the tests' threshold)
 MIN_CURVATURE_1PM = 1.0 / 300.0  # gentler curves than radius 300 m never limit speed
+# Keep the junction clear: room needed beyond its exit = the ego's length (4.7 m) + 1.3 m, and
+# what counts as blocking it: anything moving slower than this along the path.
+KEEP_CLEAR_ROOM_M = 6.0
+BLOCKING_MPS = 2.0
+# A turn that gives way inside the junction (SUMO's internal waiting point) is not begun while a
+# foe vehicle is less than this far from the junction: waiting inside, the car's front can
+# reach into the foe's lane (measured: a "v77 hit ego (junction)" collision in the spider town).
+FOE_GAP_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -75,6 +89,11 @@ class ExpertInput:
         stop_distance_m: distance to the next stop-controlled entry's line; None without one.
         stop_done: the ego has completed its full stop at that entry.
         route_end_m: distance to the end of a route that will not be extended; None otherwise.
+        junction_entry_m, junction_exit_m: distance to the next junction's entry (its first
+            internal lane) and exit (the lane after it) while the ego is before it; None
+            inside a junction or without one ahead.
+        waits_inside: the ego's link there gives way at a waiting point inside the junction.
+        foe_eta_s: soonest arrival of another vehicle at that junction, s; None if none.
     """
 
     speed_mps: float
@@ -87,6 +106,10 @@ class ExpertInput:
     stop_distance_m: float | None = None
     stop_done: bool = False
     route_end_m: float | None = None
+    junction_entry_m: float | None = None
+    junction_exit_m: float | None = None
+    waits_inside: bool = False
+    foe_eta_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -172,6 +195,24 @@ def route_end_rule(inp: ExpertInput, p: Profile) -> float:
     return approach_speed(inp.route_end_m - 2.0, 0.0, p.ego_comfort_decel_mps2)
 
 
+def junction_rule(inp: ExpertInput, p: Profile) -> float:
+    if inp.junction_entry_m is None or inp.junction_exit_m is None:
+        return math.inf
+    need = inp.junction_exit_m + KEEP_CLEAR_ROOM_M
+    blocked = any(
+        inp.junction_entry_m - 0.5 < o.distance_m < need and o.speed_mps < BLOCKING_MPS
+        for o in inp.obstacles
+    )
+    if inp.waits_inside and inp.foe_eta_s is not None and inp.foe_eta_s < FOE_GAP_S:
+        blocked = True  # do not start a turn that would have to wait inside, a foe is near
+    if not blocked:
+        return math.inf
+    v = inp.speed_mps
+    if v * v / (2.0 * p.emergency_decel_mps2) > inp.junction_entry_m:
+        return math.inf  # past the point of stopping before it: clear it instead
+    return approach_speed(inp.junction_entry_m - STOP_LINE_MARGIN_M, 0.0, p.ego_comfort_decel_mps2)
+
+
 # Order matters only for ties: the first rule with the lowest cap names the reason.
 RULES = (
     ("red_light", light_rule),
@@ -181,6 +222,7 @@ RULES = (
     ("curve", curve_rule),
     ("speed_limit", speed_limit_rule),
     ("route_end", route_end_rule),
+    ("junction", junction_rule),
 )
 
 
@@ -194,6 +236,6 @@ def decide(inp: ExpertInput, p: Profile) -> Decision:
         if cap < target:
             target, reason = cap, name
     # Below walking pace towards a stop point, snap to 0 so the car really stands still.
-    if target < 0.3 and reason in ("red_light", "stop_sign", "pedestrian", "route_end"):
+    if target < 0.3 and reason in ("red_light", "stop_sign", "pedestrian", "route_end", "junction"):
         target = 0.0
     return Decision(max(0.0, target), reason)

@@ -132,3 +132,50 @@ def test_every_reason_is_a_schema_category():
     from schemas import EXPERT_REASONS
 
     assert {name for name, _ in expert.RULES} | {"none", "junction"} <= set(EXPERT_REASONS)
+
+
+def test_keeps_the_junction_clear_of_a_standing_queue_beyond_it():
+    # junction from 20 m to 35 m ahead; a car stands 38 m ahead: no room for the ego past it
+    queue = (Obstacle(38.0, 0.0, "vehicle"),)
+    inp = ExpertInput(8.0, LIMIT, obstacles=queue, junction_entry_m=20.0, junction_exit_m=35.0)
+    d = decide(inp, P)
+    assert d.reason == "junction"
+    room = 20.0 - expert.STOP_LINE_MARGIN_M
+    assert d.target_speed_mps == pytest.approx(math.sqrt(2 * P.ego_comfort_decel_mps2 * room))
+    # room enough beyond the exit, or the queue moving: no hold
+    far = (Obstacle(35.0 + expert.KEEP_CLEAR_ROOM_M + 1.0, 0.0, "vehicle"),)
+    assert (
+        decide(
+            ExpertInput(8.0, LIMIT, obstacles=far, junction_entry_m=20.0, junction_exit_m=35.0), P
+        ).reason
+        != "junction"
+    )
+    moving = (Obstacle(38.0, 8.0, "vehicle"),)
+    assert (
+        decide(
+            ExpertInput(8.0, LIMIT, obstacles=moving, junction_entry_m=20.0, junction_exit_m=35.0),
+            P,
+        ).reason
+        != "junction"
+    )
+
+
+def test_waits_before_the_junction_for_someone_on_its_exit_crossing():
+    ped = (Obstacle(30.0, 0.0, "pedestrian"),)  # on the crossing at the junction's exit
+    d = decide(
+        ExpertInput(6.0, LIMIT, obstacles=ped, junction_entry_m=12.0, junction_exit_m=28.0), P
+    )
+    assert d.reason == "junction"
+    assert d.target_speed_mps == pytest.approx(
+        expert.approach_speed(12.0 - expert.STOP_LINE_MARGIN_M, 0.0, P.ego_comfort_decel_mps2)
+    )
+    # standing at the stop line it stays there (snapped to 0)
+    ped = (Obstacle(18.0, 0.0, "pedestrian"),)
+    at_line = ExpertInput(0.0, LIMIT, obstacles=ped, junction_entry_m=1.0, junction_exit_m=17.0)
+    assert decide(at_line, P) == Decision(0.0, "junction")
+
+
+def test_too_late_to_stop_before_the_junction_it_goes_on():
+    queue = (Obstacle(12.0, 0.0, "vehicle"),)
+    inp = ExpertInput(14.0, LIMIT, obstacles=queue, junction_entry_m=0.5, junction_exit_m=10.0)
+    assert expert.junction_rule(inp, P) == math.inf

@@ -1,6 +1,7 @@
 """The driving world with real SUMO: the expert's rules on tiny hand-made networks, safety over
 random episodes in the built-in towns, user networks, determinism and FrameState conventions."""
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -10,8 +11,18 @@ import pytest
 
 from datagen import expert
 from datagen.errors import UserError
+from datagen.state import Pose
 from datagen.towns import TOWN_NAMES, build_plain_network, town_net_path
-from datagen.world import AGENT_RADIUS_M, EGO_ID, World, WorldConfig, record
+from datagen.world import (
+    AGENT_RADIUS_M,
+    COLLISION_DROP_S,
+    EGO_DIMS_M,
+    EGO_ID,
+    EgoCommand,
+    World,
+    WorldConfig,
+    record,
+)
 from schemas import BOX_CLASSES, COMMANDS, EXPERT_REASONS, TRAFFIC_LIGHTS
 
 SUMO_GAME = Path(__import__("sumo").SUMO_HOME) / "tools" / "game"
@@ -255,7 +266,8 @@ def test_same_seed_same_trajectory():
 def test_frame_state_conventions():
     cfg = WorldConfig(town_net_path("downtown"), seed=2, weather="sunny", behaviour="normal")
     with World(cfg) as world:
-        frames = list(record(world, 40))
+        # no hold-back: the last frame is SUMO's state now, compared with libsumo below
+        frames = list(record(world, 40, drop_before_collision_s=0.0))
         assert [round(f.time_s - frames[0].time_s, 3) for f in frames] == [
             0.5 * k for k in range(40)
         ]
@@ -294,3 +306,101 @@ def test_record_stops_when_the_world_ends(nets):
         assert len(frames) < 10_000
         assert frames[-1].expert_reason == "route_end"
         assert ls.vehicle.getSpeed(EGO_ID) < expert.STOPPED_MPS
+
+
+def _external(net: Path, route: tuple[str, ...]) -> WorldConfig:
+    return dataclasses.replace(_quiet(net, route), ego_driver="external")
+
+
+def test_external_driver_places_the_ego_and_gets_signals_and_route_progress(nets):
+    with World(_external(nets["light"], ("WC", "CN"))) as world:
+        with pytest.raises(RuntimeError, match="step"):
+            world.advance(0.1)
+        n = len(ls.trafficlight.getRedYellowGreenState("C"))
+        ls.trafficlight.setRedYellowGreenState("C", "r" * n)
+        start = world.state().ego.pose
+        x, y, v = start.x_m, start.y_m, 10.0
+        lanes, remaining, red = [], [], 0
+        for k in range(400):
+            yaw = 0.0 if x < 1.6 else math.pi / 2  # east on WC, then left (north) onto CN
+            x, y = x + v * 0.1 * math.cos(yaw), y + v * 0.1 * math.sin(yaw)
+            y += 0.25 if 40 < k <= 50 else -0.25 if 50 < k <= 60 else 0.0  # swerve and back
+            world.step(EgoCommand(Pose(x, y, yaw), v))
+            ego, truth = world.state().ego, world.truth()
+            assert (ego.pose.x_m, ego.pose.y_m) == pytest.approx((x, y), abs=1e-6)
+            assert ego.pose.yaw_rad == pytest.approx(yaw, abs=1e-6)
+            assert ego.speed_mps == pytest.approx(v)
+            lanes.append(truth.lane_id)
+            remaining.append(truth.remaining_route_m)
+            red += truth.entered_on_red
+            if y > 100:
+                break
+        assert any(lane.startswith("CW") for lane in lanes), "never mapped to the opposite lane"
+        assert red == 1 and world.stats["red_light_violations"] == 1
+        assert truth.lane_id.startswith("CN") and truth.route_index == 1
+        assert truth.remaining_route_m == pytest.approx(
+            ls.lane.getLength(truth.lane_id) - (y - 2.35), abs=3.0
+        )
+        on_wc = [r for r, lane in zip(remaining, lanes) if lane.startswith("WC")]
+        assert all(a > b for a, b in zip(on_wc, on_wc[1:])), "route progress not monotone"
+        assert None in remaining  # off the route (opposite lane): no progress reported
+
+
+def test_traffic_sees_an_externally_placed_ego(nets):
+    with World(_external(nets["light"], ("WC", "CE"))) as world:
+        ls.trafficlight.setRedYellowGreenState(
+            "C", "G" * len(ls.trafficlight.getRedYellowGreenState("C"))
+        )
+        ego = world.state().ego.pose
+        stand = Pose(ego.x_m + 100.0, ego.y_m, 0.0)
+        ls.route.add("r_follow", ["WC", "CE"])
+        ls.vehicle.add("follower", "r_follow", typeID="car", departSpeed="13")
+        for _ in range(300):  # the ego stands 100 m down the road; the follower comes up
+            world.step(EgoCommand(stand, 0.0))
+        assert "follower" in ls.vehicle.getIDList()
+        gap = stand.x_m - EGO_DIMS_M[0] / 2 - ls.vehicle.getPosition("follower")[0]
+        assert ls.vehicle.getSpeed("follower") < 0.1 and 0.0 < gap < 5.0
+        assert world.stats["collisions"] == 0
+
+
+def test_record_drops_the_frames_before_an_ego_collision(nets):
+    with World(_quiet(nets["crossing"], ("AM", "MB"))) as world:
+        frames = []
+        for frame in record(world, 1000):
+            if not frames:  # a car that ignores every safety rule rams the ego from behind
+                ls.route.add("r_ram", ["AM", "MB"])
+                ls.vehicle.add("ram", "r_ram", typeID="car", departSpeed="20", departPos="0")
+                ls.vehicle.setSpeedMode("ram", 0)
+                ls.vehicle.setSpeed("ram", 25.0)
+            frames.append(frame)
+        assert world.ended == "collision" and "ram" in world.end_detail
+        crash_s = world.time_s
+        assert frames, "frames long before the collision are kept"
+        assert frames[-1].time_s <= crash_s - COLLISION_DROP_S
+        assert world.stats["dropped_frames"] == round(COLLISION_DROP_S / 0.5)
+    # without a collision nothing is dropped: every state up to the end is yielded
+    with World(_quiet(nets["stop"], ("WC", "CE"))) as world:
+        frames = list(record(world, 10_000))
+        assert world.ended == "route_end" and world.stats["dropped_frames"] == 0
+        assert frames[-1].time_s == pytest.approx(world.time_s, abs=0.51)
+
+
+# Episodes that ended in an ego collision before the expert yielded to people stepping onto a
+# crossing on its path and kept junctions clear (town, SUMO seed, weather, behaviour, seconds).
+FORMER_COLLISIONS = [
+    # datagen build --towns 1 --frames 1440 --seed 22, grid_small-22-0000: "ego hit p130
+    # (crossing)" at 123 s, the person stepping off a walking area onto the exit crossing
+    ("grid_small", 1486197343, "sunny", "normal", 126.0),
+    # datagen build --towns 8 --frames 1920 --episode-seconds 120 --seed 11, spider-11-0001:
+    # "v77 hit ego (junction)" at 22.7 s, the ego waiting inside the junction to turn left
+    ("spider", 2138764776, "cloudy", "aggressive", 30.0),
+]
+
+
+@pytest.mark.parametrize("town, seed, weather, behaviour, seconds", FORMER_COLLISIONS)
+def test_former_collision_episodes_now_drive_without_one(town, seed, weather, behaviour, seconds):
+    cfg = WorldConfig(town_net_path(town), seed=seed, weather=weather, behaviour=behaviour)
+    with World(cfg) as world:
+        world.advance(seconds)
+        assert world.stats["collisions"] == 0, world.end_detail
+        assert world.stats["sim_s"] == pytest.approx(seconds)

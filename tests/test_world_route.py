@@ -177,3 +177,20 @@ def test_point_along_a_polyline_clamps_to_its_end():
     s = np.array([0.0, 10.0, 20.0])
     assert route.point_along(pts, s, 15.0) == pytest.approx((10.0, 5.0))
     assert route.point_along(pts, s, 50.0) == pytest.approx((10.0, 10.0))
+
+
+def test_a_minor_turn_with_an_internal_waiting_point_waits_inside():
+    class Split(ToyNet):
+        def links(self, lane_id):
+            if lane_id == ":J_0_0":
+                return (Link("B_0", ":J_9_0", "", "l"),)  # the turn's second internal lane
+            return super().links(lane_id)
+
+    left = Link("B_0", ":J_0_0", "m", "l")
+    assert route.waits_inside(Split(), left)
+    assert not route.waits_inside(NET, left)  # one internal lane: no waiting point inside
+    assert not route.waits_inside(Split(), left._replace(state="M"))  # major: no giving way
+    assert (
+        route.junction_of(":J_0_0") == "J"
+        and route.junction_of(":cluster_1_2_5_0") == "cluster_1_2"
+    )

@@ -8,6 +8,9 @@ Modules (data flows down):
     traffic.py      the population in a bubble around the ego
     world.py        the step loop (World, WorldConfig, record)
 
+Who drives the ego is one seam: WorldConfig.ego_driver "expert" (default) or "external", then
+World.step(EgoCommand(pose, speed)) every step and World.truth() for scoring (world.py).
+
 Everything other modules import from here is re-exported below, so `from datagen.world import
 World, WorldConfig, record` stays the one entry point.
 """
@@ -31,7 +34,11 @@ from datagen.world.traffic import PED_REMOVE_M, PED_SPAWN_M, VEH_REMOVE_M, VEH_S
 from datagen.world.world import (
     AGENT_RADIUS_M,
     BLOCKED_S,
+    COLLISION_DROP_S,
+    EGO_DRIVERS,
     WARMUP_S,
+    EgoCommand,
+    EgoTruth,
     World,
     WorldConfig,
     record,
@@ -40,9 +47,11 @@ from datagen.world.world import (
 __all__ = [
     "AGENT_RADIUS_M",
     "BLOCKED_S",
+    "COLLISION_DROP_S",
     "COMMAND_RANGE_M",
     "EGO_DECEL_SLACK",
     "EGO_DIMS_M",
+    "EGO_DRIVERS",
     "EGO_ID",
     "EXIT_INTO_M",
     "PATH_LOOKAHEAD_M",
@@ -56,6 +65,8 @@ __all__ = [
     "VEH_REMOVE_M",
     "VEH_SPAWN_M",
     "WARMUP_S",
+    "EgoCommand",
+    "EgoTruth",
     "World",
     "WorldConfig",
     "record",

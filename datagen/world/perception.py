@@ -10,12 +10,16 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from datagen import expert
-from datagen.world.fleet import EGO_DIMS_M, dims
-from datagen.world.route import Path, project
+from datagen.world.fleet import EGO_DIMS_M, PED_TYPE, dims
+from datagen.world.route import Path, RoadNet, first_intersection, project
 from datagen.world.sumo import AgentReading, Leader, box_centre
 
 _CROSSING = re.compile(r"_c\d+_\d+$")  # internal crossing lane ":<junction>_c<k>_<lane>"
 _WALKING_AREA = re.compile(r"_w\d+_\d+$")
+CROSSING_HALF_WIDTH_M = 2.0  # SUMO crossings are 4 m wide (netconvert's default)
+CORRIDOR_SLACK_M = 1.0  # a person this close to the ego's corridor across a crossing is in it
+STEP_ON_M = 2.0  # someone walking to a crossing this close to its end is about to step on
+CLEAR_FIRST_S = 1.5  # the ego goes first only if it clears the crossing this long before them
 
 
 def is_kerb(lane_id: str, allowed: tuple[str, ...] | None) -> bool:
@@ -113,6 +117,92 @@ def obstacles(
             )
         )
     return out
+
+
+def crossing_obstacles(
+    agents: Sequence[AgentReading],
+    net: RoadNet,
+    kerb: Callable[[str], bool],
+    path: Path,
+    ego_speed_mps: float,
+) -> list[expert.Obstacle]:
+    """People on, or about to step onto, a crossing that the ego's path crosses ahead.
+
+    A person counts while on the crossing and not yet past the ego's corridor (its half width
+    + CORRIDOR_SLACK_M around where the path crosses), or while walking on the kerb towards a
+    crossing (their next edge) within STEP_ON_M of it. Someone still outside the corridor is
+    let go first only when the ego, at its speed (2 m/s at least), clears the crossing
+    CLEAR_FIRST_S before they reach the corridor. The obstacle is the crossing's near edge.
+    """
+    out = []
+    band = 0.5 * EGO_DIMS_M[1] + CORRIDOR_SLACK_M
+    for a in agents:
+        if a.type_id != PED_TYPE:
+            continue
+        if is_crossing(a.lane_id):
+            lane, on = a.lane_id, True
+        elif a.speed_mps > 0.2 and is_crossing(a.next_edge + "_0") and kerb(a.lane_id):
+            lane, on = a.next_edge + "_0", False
+        else:
+            continue
+        c = net.lane(lane).pts
+        if len(c) < 2:
+            continue
+        hit = first_intersection(path.pts, path.s, c)
+        if hit is None or hit[0] < 0.0:
+            continue
+        s_x, u_x = hit
+        c_s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(c, axis=0).T))])
+        u_p, lat, head = project(np.asarray([a.front_xy_m], dtype=np.float64), c, c_s)
+        u_p = float(u_p[0])
+        if on:
+            if a.speed_mps < 0.2:
+                direction = 0.0  # standing on the crossing: only in the corridor counts
+            else:
+                direction = 1.0 if np.cos(a.yaw_rad - head[0]) >= 0.0 else -1.0
+        else:
+            to_start, to_end = abs(u_p), abs(c_s[-1] - u_p)
+            if min(to_start, to_end) > STEP_ON_M + float(lat[0]):
+                continue
+            direction = 1.0 if to_start <= to_end else -1.0  # onto it from the nearer end
+        ahead = (u_x - u_p) * direction  # how far the person still walks to the path
+        if abs(u_x - u_p) > band:
+            if direction == 0.0 or ahead < 0.0:
+                continue  # standing off the corridor, or already past it
+            t_person = (ahead - band) / max(a.speed_mps, 0.5)
+            t_ego = (s_x + CROSSING_HALF_WIDTH_M + EGO_DIMS_M[0]) / max(ego_speed_mps, 2.0)
+            if t_ego + CLEAR_FIRST_S < t_person:
+                continue
+        out.append(expert.Obstacle(s_x - CROSSING_HALF_WIDTH_M, 0.0, "pedestrian", a.agent_id))
+    return out
+
+
+def foe_eta_s(
+    agents: Sequence[AgentReading], net: RoadNet, junction: str, own_edge: str
+) -> float | None:
+    """Soonest time (s) any vehicle moving faster than 1 m/s on another lane into `junction`
+    reaches it (straight-line distance from its front to its lane's end over its speed), 0 for
+    one already inside it; None if none. People are left to the crossing rule."""
+    best = None
+    prefix = f":{junction}_"
+    for a in agents:
+        if a.type_id == PED_TYPE or a.speed_mps <= 1.0 or not a.lane_id:
+            continue
+        if a.lane_id.startswith(prefix):
+            if is_crossing(a.lane_id) or _WALKING_AREA.search(a.lane_id):
+                continue
+            eta = 0.0
+        elif a.lane_id.startswith(":"):
+            continue
+        else:
+            edge = a.lane_id.rsplit("_", 1)[0]
+            if edge == own_edge or net.to_junction(edge) != junction:
+                continue
+            end = net.lane(a.lane_id).pts[-1]
+            dist = float(np.hypot(end[0] - a.front_xy_m[0], end[1] - a.front_xy_m[1]))
+            eta = dist / a.speed_mps
+        best = eta if best is None else min(best, eta)
+    return best
 
 
 def junction_clear(

@@ -79,6 +79,8 @@ class RoadNet(Protocol):
 
     def lane_count(self, edge_id: str) -> int: ...
 
+    def to_junction(self, edge_id: str) -> str: ...
+
 
 @dataclass(frozen=True)
 class Path:
@@ -154,6 +156,27 @@ def project(
         along[first] = s[0] + ((xy[first] - a[0]) @ u)
         dist[k[first], 0] = np.abs((xy[first] - a[0]) @ np.array([-u[1], u[0]]))
     return along, dist[k, idx], heading
+
+
+def first_intersection(
+    pts: np.ndarray, s: np.ndarray, other: np.ndarray
+) -> tuple[float, float] | None:
+    """Where polyline `other` (M, 2) first crosses polyline `pts` (N, 2) with arc lengths `s`:
+    (distance along pts, distance along other), or None if they do not cross."""
+    a, da = pts[:-1], np.diff(pts, axis=0)  # (N-1, 2)
+    b, db = other[:-1], np.diff(other, axis=0)  # (M-1, 2)
+    cross = da[:, None, 0] * db[None, :, 1] - da[:, None, 1] * db[None, :, 0]  # (N-1, M-1)
+    rel = b[None] - a[:, None]  # (N-1, M-1, 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (rel[..., 0] * db[None, :, 1] - rel[..., 1] * db[None, :, 0]) / cross
+        u = (rel[..., 0] * da[:, None, 1] - rel[..., 1] * da[:, None, 0]) / cross
+    ok = (np.abs(cross) > 1e-12) & (t >= 0) & (t <= 1) & (u >= 0) & (u <= 1)
+    if not ok.any():
+        return None
+    i, j = np.argwhere(ok)[0]  # rows are path segments in order: the first one along pts
+    seg_b = np.hypot(db[:, 0], db[:, 1])
+    s_b = np.concatenate([[0.0], np.cumsum(seg_b)])
+    return float(s[i] + t[i, j] * (s[i + 1] - s[i])), float(s_b[j] + u[i, j] * seg_b[j])
 
 
 def via_chain(net: RoadNet, internal: str) -> list[str]:
@@ -353,6 +376,32 @@ def speed_limits(
         elif v < limit:
             limits_ahead.append((d, v))
     return limit, tuple(limits_ahead)
+
+
+def junction_ahead(lane_id: str, path: Path, links: tuple[Link, ...]) -> tuple[float, float] | None:
+    """(entry, exit) distances of the next junction the path drives through, while the ego is
+    before it: entry = where its first internal lane starts (the stop line), exit = where the
+    lane after it starts. None inside a junction or without internal lanes ahead."""
+    if lane_id.startswith(":") or not links or not path.link_dist or len(path.seg_lanes) < 2:
+        return None
+    if not links[0].via_lane_id:
+        return None
+    return path.link_dist[0], path.seg_lanes[1][0]
+
+
+def junction_of(internal_lane_id: str) -> str:
+    """The junction id of an internal lane ":<junction>_<index>_<lane>"."""
+    return internal_lane_id[1:].rsplit("_", 2)[0]
+
+
+def waits_inside(net: RoadNet, link: Link) -> bool:
+    """The ego would give way inside the junction on this link: a minor link ("m", or "g"
+    at a light) whose passage has an internal waiting point (two or more internal lanes)."""
+    return (
+        link.state in ("m", "g")
+        and bool(link.via_lane_id)
+        and len(via_chain(net, link.via_lane_id)) >= 2
+    )
 
 
 def route_suffix_m(net: RoadNet, route: tuple[str, ...]) -> np.ndarray:

@@ -70,6 +70,8 @@ class AgentReading(NamedTuple):
         yaw_rad: heading, counter-clockwise from east, rad.
         speed_mps: speed, m/s.
         lane_id: lane (internal lanes start with ":"; "" off the network).
+        next_edge: a person's next edge on its walk (a crossing ":<junction>_c<k>" when it is
+            about to cross), "" for vehicles.
     """
 
     agent_id: str
@@ -78,6 +80,7 @@ class AgentReading(NamedTuple):
     yaw_rad: float
     speed_mps: float
     lane_id: str
+    next_edge: str = ""
 
 
 class EgoReading(NamedTuple):
@@ -188,6 +191,7 @@ class Network:
         self._lanes: dict[str, Lane] = {}
         self._links: dict[str, tuple[Link, ...]] = {}
         self._allowed: dict[str, tuple[str, ...]] = {}
+        self._to_junction: dict[str, str] = {}
 
     def lane(self, lane_id: str) -> Lane:
         lane = self._lanes.get(lane_id)
@@ -216,6 +220,14 @@ class Network:
 
     def lane_count(self, edge_id: str) -> int:
         return self._ls.edge.getLaneNumber(edge_id)
+
+    def to_junction(self, edge_id: str) -> str:
+        """The junction an edge leads to."""
+        j = self._to_junction.get(edge_id)
+        if j is None:
+            j = self._ls.edge.getToJunction(edge_id)
+            self._to_junction[edge_id] = j
+        return j
 
 
 class Sumo:
@@ -379,7 +391,9 @@ class Sumo:
         )
         vars_ = [v.VAR_POSITION, v.VAR_ANGLE, v.VAR_SPEED, v.VAR_TYPE, v.VAR_LANE_ID]
         ls.vehicle.subscribeContext(EGO_ID, v.CMD_GET_VEHICLE_VARIABLE, radius_m, vars_)
-        ls.vehicle.subscribeContext(EGO_ID, v.CMD_GET_PERSON_VARIABLE, radius_m, vars_)
+        ls.vehicle.subscribeContext(
+            EGO_ID, v.CMD_GET_PERSON_VARIABLE, radius_m, [*vars_, v.VAR_NEXT_EDGE]
+        )
 
     def snapshot(self) -> Snapshot:
         """The ego and everyone around it after the last step (see Snapshot)."""
@@ -394,15 +408,18 @@ class Sumo:
             r[ls.VAR_ROAD_ID],
             int(r[ls.VAR_ROUTE_INDEX]),
         )
-        pos, ang, spd, typ, lane = (
+        pos, ang, spd, typ, lane, nxt = (
             ls.VAR_POSITION,
             ls.VAR_ANGLE,
             ls.VAR_SPEED,
             ls.VAR_TYPE,
             ls.VAR_LANE_ID,
+            ls.VAR_NEXT_EDGE,
         )
         agents = tuple(
-            AgentReading(aid, a[typ], a[pos], yaw_from_sumo(a[ang]), a[spd], a[lane])
+            AgentReading(
+                aid, a[typ], a[pos], yaw_from_sumo(a[ang]), a[spd], a[lane], a.get(nxt, "")
+            )
             for aid, a in ls.vehicle.getContextSubscriptionResults(EGO_ID).items()
             if aid != EGO_ID
         )

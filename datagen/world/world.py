@@ -19,8 +19,40 @@ SUMO's safety checks brake harder (up to emergencyDecel), i.e. only to avoid a c
 step's reason names what it yields to (`junction`, `stop_sign`, `pedestrian`, `vehicle`). Lane
 choice and lane changes stay with SUMO's lane-change model.
 
+On top of SUMO's checks the expert yields to people on, or about to step onto, a crossing its
+path crosses (perception.crossing_obstacles: their next edge is the crossing), and keeps
+junctions clear (expert.junction_rule): it does not enter one whose exit is blocked, nor begin a
+turn that would give way at a waiting point inside it while a foe vehicle is near (waiting
+there, the car's front can reach into the foe's lane).
+
+What the dataset keeps of an episode that still ends in an ego collision: `record` holds every
+state back COLLISION_DROP_S (5 s) and drops the held states when the collision comes, so no
+frame shows the expert driving into it (World.dropped_frames, stats["dropped_frames"]).
+
 The ego drives a random route that is extended with a new random destination before it ends
 (`WorldConfig.reroute`); traffic lives in a bubble around it (traffic.py).
+
+Who drives the ego: one seam. `WorldConfig.ego_driver="expert"` (the default, above) or
+"external": a controller (the closed-loop evaluator) computes the ego's next pose and speed with
+its own kinematic model and hands them over every 0.1 s step as an `EgoCommand`; the world puts
+the ego there (moveToXY with keepRoute=2: anywhere, off its lane or the road too), sets its speed
+(speed mode 0, so other drivers see the speed it really has), keeps its SUMO route on the planned
+route so other vehicles give way to it at junctions (sumo#6140), and moves the traffic bubble
+with it. `state()` gives the FrameState the sensors need; `truth()` gives what infractions need
+beyond the agents' boxes in `state().agents`: lane, signal of the ego's lane and its distance
+(any range), entering a junction on red, route progress, SUMO's own ego collisions (incomplete
+for a placed vehicle, sumo#6327: check boxes too). Nothing ends an externally driven episode but
+SUMO removing the ego; collisions and red lights are the caller's to score.
+
+    cfg = WorldConfig(net, seed=3, weather="rainy", behaviour="cautious",
+                      ego_route=route_edges, reroute=False, ego_driver="external")
+    with World(cfg) as world:
+        ego = world.state().ego                        # the start: box centre, yaw, speed 0
+        for k in range(n_steps):
+            pose, v = controller.next(ego, world.truth())   # the caller's kinematics, 0.1 s
+            world.step(EgoCommand(pose, v))
+            frame = world.state()                      # sensors at 2 Hz: every 5th step
+            ego = frame.ego
 
 Poses are converted once, where libsumo is read (sumo.py): FrameState poses are box centres
 with yaw counter-clockwise from east in radians.
@@ -31,6 +63,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,17 +73,20 @@ import numpy as np
 from datagen import expert
 from datagen.behaviour import PROFILES, Profile
 from datagen.errors import UserError
-from datagen.state import AgentState, FrameState
+from datagen.state import AgentState, FrameState, Pose
 from datagen.world import perception, route
 from datagen.world.fleet import EGO_DECEL_SLACK, EGO_DIMS_M, EGO_ID, dims
 from datagen.world.route import PATH_LOOKAHEAD_M, SIGNAL_RANGE_M
-from datagen.world.sumo import Snapshot, Sumo, box_centre
+from datagen.world.sumo import Collision, Snapshot, StepEvents, Sumo, box_centre
 from datagen.world.traffic import Traffic
 from schemas import WEATHERS
 
 AGENT_RADIUS_M = 100.0  # agents within this distance of the ego are in FrameState.agents
 BLOCKED_S = 80.0  # ego standing this long (not at a red light) ends the episode ("blocked")
 WARMUP_S = 10.0  # traffic runs this long before the ego is inserted
+# record() drops the frames of the last 5 s before an ego collision: more than the 2 s of future
+# waypoints a frame is labelled with plus ~3 s of approach, so no frame shows driving into it.
+COLLISION_DROP_S = 5.0
 
 _log = logging.getLogger(__name__)
 _open_world: World | None = None  # libsumo runs one simulation per process
@@ -72,6 +108,8 @@ class WorldConfig:
         reroute: extend the ego's route before it ends (else the episode ends at its end).
         warmup_s: traffic runs this long before the ego enters.
         ego_route: the ego's route as edge ids (tests, replays); None = a random route.
+        ego_driver: who drives the ego: "expert" (the rule-based expert, SUMO's safety model
+            under it) or "external" (a controller places it every step: `World.step(EgoCommand)`).
     """
 
     net_path: Path
@@ -84,6 +122,60 @@ class WorldConfig:
     reroute: bool = True
     warmup_s: float = WARMUP_S
     ego_route: tuple[str, ...] | None = None
+    ego_driver: str = "expert"
+
+
+EGO_DRIVERS = ("expert", "external")
+
+
+@dataclass(frozen=True)
+class EgoCommand:
+    """Where an external controller puts the ego at the end of the next step (world frame).
+
+    Attributes:
+        pose: box centre (x_m, y_m), metres, and yaw_rad, counter-clockwise from east.
+        speed_mps: speed along the yaw, m/s; SUMO's other drivers react to it.
+    """
+
+    pose: Pose
+    speed_mps: float
+
+
+@dataclass(frozen=True)
+class EgoTruth:
+    """Ground truth about the ego after a step, for scoring a drive (world frame, metres).
+
+    Attributes:
+        time_s: simulation time, s.
+        lane_id: the lane SUMO maps the ego to ("" off the road network; ":..." in a junction).
+        road_id: its edge ("" off the network).
+        route_index: index into `route` of the ego's edge (the last one on the route while it
+            is inside a junction or off the route).
+        route: the ego's planned route (edge ids).
+        remaining_route_m: distance from the ego's front to the end of the route along it;
+            None while the ego is off the network or off the route.
+        light: state of the next traffic light on the route ("red", "yellow", "green",
+            "none") at any distance; light_distance_m: its stop line, None without one.
+        tls_id, tls_link_index: that light and its link governing the ego's lane ("", -1).
+        entered_on_red: this step the ego entered a junction through a link that was red.
+        stop_distance_m: the next stop-controlled entry's line, None without one.
+        collisions: SUMO's collisions involving the ego this step ((collider, victim, kind));
+            SUMO may miss some of a placed ego's (sumo#6327): check boxes as well.
+    """
+
+    time_s: float
+    lane_id: str
+    road_id: str
+    route_index: int
+    route: tuple[str, ...]
+    remaining_route_m: float | None
+    light: str
+    light_distance_m: float | None
+    tls_id: str
+    tls_link_index: int
+    entered_on_red: bool
+    stop_distance_m: float | None
+    collisions: tuple[tuple[str, str, str], ...]
 
 
 @dataclass
@@ -112,6 +204,7 @@ class World:
         ended: None while running, else why it ended: "route_end", "teleported", "blocked",
             "collision".
         end_detail: a sentence saying what ended it ("" while running).
+        dropped_frames: states `record` dropped before an ego collision (0 otherwise).
     """
 
     def __init__(self, config: WorldConfig):
@@ -124,6 +217,10 @@ class World:
             raise UserError(
                 f"unknown behaviour {config.behaviour!r}; expected one of {tuple(PROFILES)}"
             )
+        if config.ego_driver not in EGO_DRIVERS:
+            raise UserError(
+                f"unknown ego driver {config.ego_driver!r}; expected one of {EGO_DRIVERS}"
+            )
         from datagen.towns import check_network
 
         check_network(config.net_path)  # a clear UserError before SUMO sees a bad file
@@ -131,6 +228,7 @@ class World:
         self.profile: Profile = PROFILES[config.behaviour]
         self.ended: str | None = None
         self.end_detail: str = ""
+        self.dropped_frames = 0
         self._rng = np.random.default_rng(config.seed)
         self._stats = _Stats()
         self._sumo: Sumo | None = None
@@ -143,6 +241,10 @@ class World:
         self._stop_wait_s = 0.0
         self._standing_s = 0.0
         self._sticky: route.Sticky | None = None  # the junction a turn command was given for
+        self._plan_i = 0  # externally driven: index in self._route of the ego's edge
+        self._ego_collisions: tuple[tuple[str, str, str], ...] = ()
+        self._entered_on_red = False
+        self._on_plan = True  # SUMO's route of the ego is the planned one (from the offset)
         try:
             _open_world = self
             self._sumo = Sumo(config.net_path, self.profile, config.step_s, config.seed)
@@ -182,6 +284,8 @@ class World:
         self._sumo.subscribe_ego(AGENT_RADIUS_M)
         self._sumo.step()
         self._set_route(self._sumo.ego_route())
+        if self.config.ego_driver == "external":
+            self._sumo.take_over_ego()
         self._snap = self._sumo.snapshot()
         self._sense()
 
@@ -222,6 +326,19 @@ class World:
         obstacles = perception.obstacles(
             self._snap.agents, self._is_kerb, ego.lane_id.startswith(":"), self._path, leader
         )
+        obstacles += perception.crossing_obstacles(
+            self._snap.agents, self._net, self._is_kerb, self._path, ego.speed_mps
+        )
+        junction = route.junction_ahead(ego.lane_id, self._path, self._snap.links)
+        waits_inside, foe_eta = False, None
+        if junction is not None and route.waits_inside(self._net, self._snap.links[0]):
+            waits_inside = True
+            foe_eta = perception.foe_eta_s(
+                self._snap.agents,
+                self._net,
+                route.junction_of(self._snap.links[0].via_lane_id),
+                ego.road_id,
+            )
         return expert.ExpertInput(
             speed_mps=ego.speed_mps,
             speed_limit_mps=float(limit),
@@ -233,6 +350,10 @@ class World:
             stop_distance_m=sig.stop_distance_m,
             stop_done=sig.stop_distance_m is not None and self._stop_done_lane == ego.lane_id,
             route_end_m=route_end,
+            junction_entry_m=junction[0] if junction else None,
+            junction_exit_m=junction[1] if junction else None,
+            waits_inside=waits_inside,
+            foe_eta_s=foe_eta,
         )
 
     def _set_route(self, edges: list[str] | tuple[str, ...]) -> None:
@@ -244,8 +365,17 @@ class World:
         """Distance from the ego's front to the end of its route, m."""
         ego = self._snap.ego
         return route.remaining_route_m(
-            self._net, self._route_suffix, ego.lane_id, ego.lane_pos_m, ego.route_index
+            self._net,
+            self._route_suffix,
+            ego.lane_id,
+            ego.lane_pos_m,
+            self._route_index(),
         )
+
+    def _route_index(self) -> int:
+        """Index in self._route of the ego's edge. The expert's SUMO route is self._route (a
+        reroute keeps the passed edges); a placed ego's SUMO route may not be."""
+        return self._snap.ego.route_index if self.config.ego_driver == "expert" else self._plan_i
 
     def _maybe_reroute(self) -> None:
         ego = self._snap.ego
@@ -254,7 +384,8 @@ class World:
         edges = list(self._route)
         new = self._traffic.extension(edges[-1])
         if new:
-            self._sumo.set_ego_route(edges[ego.route_index :] + list(new[1:]))
+            idx = self._route_index()
+            self._sumo.set_ego_route(edges[idx:] + list(new[1:]))
             self._set_route(edges + list(new[1:]))  # the route index stays valid
             self._stats.reroutes += 1
 
@@ -276,16 +407,8 @@ class World:
         st.sim_s += dt
         # --- what happened in the step
         events = sumo.events()
-        for c in events.collisions:
-            pair = (c.collider, c.victim)
-            if pair in self._colliding:  # SUMO reports an overlap every step it lasts
-                continue
-            self._colliding.add(pair)
-            if EGO_ID in pair:
-                st.collisions += 1
-                self._end("collision", f"{c.collider} hit {c.victim} ({c.kind}) on {c.lane_id}")
-            else:
-                st.other_collisions += 1
+        for c in self._new_collisions(events):
+            self._end("collision", f"{c.collider} hit {c.victim} ({c.kind}) on {c.lane_id}")
         st.teleports += len(events.teleported)
         if EGO_ID in events.teleported:
             self._end("teleported", "SUMO teleported the jammed ego")
@@ -299,8 +422,7 @@ class World:
         lane1 = snap.ego.lane_id
         if self._route_end_m is not None and self._route_end_m < 5.0 and v1 < expert.STOPPED_MPS:
             self._end("route_end", "the ego stopped at the end of its route")
-        if lane1.startswith(":") and not lane0.startswith(":") and first_state in ("r", "u"):
-            st.red_light_violations += 1
+        self._note_red_light(lane0, lane1, first_state)
         if lane1 != lane0 and lane1.startswith(":"):
             self._stop_done_lane = None
         # full stop at a stop-controlled entry: hold it STOP_WAIT_S, then the entry is done
@@ -348,6 +470,88 @@ class World:
                 self._maybe_reroute()
             self._traffic.manage(snap.ego.front_xy_m, st.steps % 50 == 0)
 
+    def _new_collisions(self, events: StepEvents) -> list[Collision]:
+        """Count the step's collisions (each pair once: SUMO reports an overlap every step it
+        lasts) and return the ego's new ones."""
+        st = self._stats
+        mine = []
+        for c in events.collisions:
+            pair = (c.collider, c.victim)
+            if pair in self._colliding:
+                continue
+            self._colliding.add(pair)
+            if EGO_ID in pair:
+                st.collisions += 1
+                mine.append(c)
+            else:
+                st.other_collisions += 1
+        self._ego_collisions = tuple((c.collider, c.victim, c.kind) for c in mine)
+        return mine
+
+    def _note_red_light(self, lane0: str, lane1: str, first_state: str) -> None:
+        """The ego entered a junction (an internal lane) through a link that was red."""
+        self._entered_on_red = (
+            lane1.startswith(":") and not lane0.startswith(":") and first_state in ("r", "u")
+        )
+        if self._entered_on_red:
+            self._stats.red_light_violations += 1
+
+    def _step_external(self, command: EgoCommand) -> None:
+        """One step with the ego placed by an external controller (see the module docstring)."""
+        sumo = self._sumo
+        st = self._stats
+        dt = self.config.step_s
+        before = self._snap
+        lane0 = before.ego.lane_id
+        first_state = before.links[0].state if before.links else ""
+        sumo.place_ego(command.pose, command.speed_mps)
+        sumo.step()
+        st.steps += 1
+        st.sim_s += dt
+        events = sumo.events()
+        self._new_collisions(events)  # scored by the caller; the drive goes on
+        st.teleports += len(events.teleported)
+        if EGO_ID in events.teleported or EGO_ID in events.arrived:
+            self._end("route_end", "SUMO took the placed ego out of the simulation")
+            return
+        snap = sumo.snapshot()
+        if self._keep_route(snap):
+            snap = sumo.snapshot()  # links and signals along the restored route
+        self._snap = snap
+        lane1 = snap.ego.lane_id
+        self._note_red_light(lane0, lane1, first_state)
+        self._reason = "none"
+        st.distance_m += snap.ego.speed_mps * dt
+        st.speed_sum += snap.ego.speed_mps
+        if lane1:  # off the network: path and signals stay the last ones on it
+            self._sense()
+        else:
+            self._on_plan = False
+        if st.steps % 10 == 0:
+            if self.config.reroute and self._on_plan and lane1:
+                self._maybe_reroute()
+            self._traffic.manage(snap.ego.front_xy_m, st.steps % 50 == 0)
+
+    def _keep_route(self, snap: Snapshot) -> bool:
+        """Keep SUMO's route of a placed ego on the planned route, so that other drivers
+        respect it at junctions (sumo#6140): moveToXY(keepRoute=2) replaces the route by the
+        edge it maps the ego to when that edge is off the route (inside a junction: by the
+        passage of the nearest internal lane). On a planned edge again, the rest of the plan is
+        set back. True if the route was set."""
+        road = snap.ego.road_id
+        if not road or road.startswith(":"):
+            return False  # off the network or inside a junction: as it was
+        try:
+            i = self._route.index(road, self._plan_i)
+        except ValueError:
+            self._on_plan = False  # off the route (e.g. the opposite lane): nothing to restore
+            return False
+        self._plan_i, self._on_plan = i, True
+        if self._sumo.ego_route()[snap.ego.route_index :] == self._route[i:]:
+            return False
+        self._sumo.set_ego_route(self._route[i:])
+        return True
+
     def _end(self, why: str, detail: str) -> None:
         if self.ended is None:
             self.ended = why
@@ -364,8 +568,27 @@ class World:
 
     # ------------------------------------------------------------------ public
 
+    def step(self, command: EgoCommand | None = None) -> None:
+        """One SUMO step (config.step_s): the expert drives (command None, ego_driver
+        "expert") or the ego is placed at `command` (ego_driver "external")."""
+        if (command is None) != (self.config.ego_driver == "expert"):
+            raise RuntimeError(
+                f"ego_driver {self.config.ego_driver!r}: "
+                + ("step() takes no command" if command is not None else "step() needs a command")
+            )
+        if self.ended is not None:
+            return
+        t0 = time.perf_counter()
+        if command is None:
+            self._step()
+        else:
+            self._step_external(command)
+        self._stats.wall_s += time.perf_counter() - t0
+
     def advance(self, dt_s: float) -> None:
         """Run the simulation `dt_s` seconds (whole steps) with the expert in control."""
+        if self.config.ego_driver != "expert":
+            raise RuntimeError("an externally driven ego moves only by step(EgoCommand)")
         if self.ended is not None:
             return
         t0 = time.perf_counter()
@@ -420,6 +643,29 @@ class World:
             signals=self._sumo.signal_states(),
         )
 
+    def truth(self) -> EgoTruth:
+        """Ground truth about the ego after the last step, for scoring (see EgoTruth)."""
+        snap = self._snap
+        ego = snap.ego
+        on_net = ego.lane_id != ""
+        sig = self._signals
+        nxt = snap.next_signals[0] if snap.next_signals else None
+        return EgoTruth(
+            time_s=self.time_s,
+            lane_id=ego.lane_id,
+            road_id=ego.road_id,
+            route_index=self._route_index(),
+            route=self._route,
+            remaining_route_m=self._remaining_route() if on_net and self._on_plan else None,
+            light=sig.light if on_net else "none",
+            light_distance_m=sig.light_distance_m if on_net else None,
+            tls_id=nxt.tls_id if nxt else "",
+            tls_link_index=nxt.link_index if nxt else -1,
+            entered_on_red=self._entered_on_red,
+            stop_distance_m=sig.stop_distance_m if on_net else None,
+            collisions=self._ego_collisions,
+        )
+
     @property
     def stats(self) -> dict:
         """Episode statistics: collisions (of the ego; other_collisions between other road
@@ -449,6 +695,7 @@ class World:
             "reasons": dict(sorted(st.reasons.items())),
             "ended": self.ended,
             "end_detail": self.end_detail,
+            "dropped_frames": self.dropped_frames,
         }
 
     def close(self) -> None:
@@ -471,12 +718,38 @@ class World:
             self.close()
 
 
-def record(world: World, n_frames: int, period_s: float = 0.5) -> Iterator[FrameState]:
+def record(
+    world: World,
+    n_frames: int,
+    period_s: float = 0.5,
+    drop_before_collision_s: float = COLLISION_DROP_S,
+) -> Iterator[FrameState]:
     """Yield `world.state()` now and every `period_s` (2 Hz by default) until `n_frames` states
-    have been yielded or the world ends (then `world.ended` says why)."""
-    for k in range(n_frames):
+    have been yielded or the world ends (then `world.ended` says why).
+
+    Each state is held back until `drop_before_collision_s` more seconds have been simulated.
+    When the episode ends in an ego collision, the states still held back -- the last
+    `drop_before_collision_s` before it -- are dropped, so no recorded frame demonstrates the
+    expert driving into the crash; any other end yields them. The states yielded are the same
+    either way (the world only runs a little ahead of the consumer).
+    """
+    hold = max(0, int(round(drop_before_collision_s / period_s)))
+    held: deque[FrameState] = deque()
+    yielded = 0
+    k = 0
+    while yielded < n_frames:
         if k:
             world.advance(period_s)
+        k += 1
         if world.ended is not None:
-            return
-        yield world.state()
+            break
+        held.append(world.state())
+        if len(held) > hold:
+            yielded += 1
+            yield held.popleft()
+    if world.ended == "collision":
+        world.dropped_frames = len(held)
+        return
+    while held and yielded < n_frames:
+        yielded += 1
+        yield held.popleft()

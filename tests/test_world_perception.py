@@ -1,0 +1,146 @@
+"""What the ego perceives (datagen/world/perception.py), pure: no SUMO.
+
+The ego drives east along y = 0 from x = 0; its path is a 100 m straight line. A crossing
+":J_c0_0" runs north from (20, -6) to (20, 6), across the path 20 m ahead.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from datagen.world import perception, route
+from datagen.world.fleet import EGO_DIMS_M
+from datagen.world.route import Lane
+from datagen.world.sumo import AgentReading, Leader
+
+PATH = route.Path(np.array([[0.0, 0.0], [100.0, 0.0]]), np.array([0.0, 100.0]), (60.0,), ())
+CROSSING = ":J_c0_0"
+
+
+class Net:
+    def lane(self, lane_id):
+        assert lane_id == CROSSING
+        return Lane(np.array([[20.0, -6.0], [20.0, 6.0]]), 12.0, 2.78)
+
+
+def _kerb(lane_id):
+    return perception.is_kerb(lane_id, ("pedestrian",) if lane_id == "side_0" else ("passenger",))
+
+
+def _ped(x, y, yaw, speed, lane, next_edge=""):
+    return AgentReading("p1", "ped", (x, y), yaw, speed, lane, next_edge)
+
+
+def _car(x, y, yaw, speed, lane="road_0"):
+    return AgentReading("v1", "car", (x, y), yaw, speed, lane)
+
+
+def _crossing(*agents, ego_speed=8.0):
+    return perception.crossing_obstacles(agents, Net(), _kerb, PATH, ego_speed)
+
+
+def test_kerb_is_a_walking_area_or_a_pedestrian_only_lane():
+    assert perception.is_kerb(":J_w0_0", None) and not perception.is_kerb(":J_c0_0", None)
+    assert perception.is_kerb("side_0", ("pedestrian",))
+    assert not perception.is_kerb("road_0", ("passenger", "pedestrian"))
+    assert perception.is_crossing(CROSSING) and not perception.is_crossing(":J_3_0")
+
+
+def test_vehicle_on_the_path_ahead_is_an_obstacle_with_its_speed_along_the_path():
+    # a car whose rear is 30 m ahead (front bumper at x = 30 + 4.5), driving east at 5 m/s
+    car = _car(34.5, 0.3, 0.0, 5.0)
+    (o,) = perception.obstacles([car], _kerb, False, PATH, None)
+    assert o.kind == "vehicle" and o.speed_mps == pytest.approx(5.0)
+    assert o.distance_m == pytest.approx(30.0)  # to its rear bumper
+    # one lane over (3.2 m to the left) it is not in the way
+    assert perception.obstacles([_car(34.5, 3.2, 0.0, 5.0)], _kerb, False, PATH, None) == []
+
+
+def test_leader_gap_gets_back_the_ego_min_gap():
+    (o,) = perception.obstacles([], _kerb, False, PATH, Leader("v9", 12.0, 3.0))
+    assert (o.distance_m, o.speed_mps, o.track_id) == (13.0, 3.0, "lead:v9")
+
+
+def test_person_at_the_kerb_counts_only_where_they_will_be():
+    standing = _ped(30.0, 2.0, -math.pi / 2, 0.0, "side_0")
+    assert perception.obstacles([standing], _kerb, False, PATH, None) == []
+    walking_in = _ped(30.0, 2.0, -math.pi / 2, 1.2, "side_0")  # on the road within 1-2 s
+    obs = perception.obstacles([walking_in], _kerb, False, PATH, None)  # at 1 s and/or 2 s
+    assert obs and all(o.kind == "pedestrian" and 29.0 < o.distance_m < 31.0 for o in obs)
+    # inside a junction the ego does not brake for someone still on the kerb
+    assert perception.obstacles([walking_in], _kerb, True, PATH, None) == []
+
+
+def test_person_on_the_crossing_walking_towards_the_path_is_yielded_to():
+    ped = _ped(20.0, -4.0, math.pi / 2, 1.2, CROSSING)  # 4 m south of the path, walking north
+    (o,) = _crossing(ped)
+    assert o.kind == "pedestrian" and o.distance_m == pytest.approx(20.0 - 2.0)
+
+
+def test_person_past_the_corridor_or_standing_off_it_is_not():
+    band = 0.5 * EGO_DIMS_M[1] + perception.CORRIDOR_SLACK_M
+    assert _crossing(_ped(20.0, band + 0.5, math.pi / 2, 1.2, CROSSING)) == []  # walking away
+    assert _crossing(_ped(20.0, -4.0, math.pi / 2, 0.0, CROSSING)) == []  # standing, off it
+    assert len(_crossing(_ped(20.0, 0.5, math.pi / 2, 0.0, CROSSING))) == 1  # standing in it
+
+
+def test_person_about_to_step_onto_the_crossing_from_the_kerb():
+    ped = _ped(20.5, -7.0, math.pi / 2, 1.2, ":J_w0_0", next_edge=":J_c0")
+    (o,) = _crossing(ped)
+    assert o.track_id == "p1" and o.distance_m == pytest.approx(18.0)
+    # walking elsewhere, or still far from the crossing: not yet
+    assert _crossing(_ped(20.5, -7.0, math.pi / 2, 1.2, ":J_w0_0", next_edge="other")) == []
+    assert _crossing(_ped(20.5, -12.0, math.pi / 2, 1.2, ":J_w0_0", next_edge=":J_c0")) == []
+
+
+def test_ego_goes_first_only_when_it_clears_the_crossing_well_before_them():
+    ped = _ped(20.0, -5.9, math.pi / 2, 0.6, CROSSING)  # slow, 5.9 m from the path
+    # at 14 m/s the ego clears the crossing (20 + 2 + 4.7 m) in 1.9 s; they need 6.6 s
+    assert _crossing(ped, ego_speed=14.0) == []
+    assert len(_crossing(ped, ego_speed=2.0)) == 1  # 13 s: yield
+
+
+def test_crossing_behind_the_ego_is_ignored():
+    behind = route.Path(np.array([[30.0, 0.0], [130.0, 0.0]]), np.array([0.0, 100.0]), (), ())
+    ped = _ped(20.0, -1.0, math.pi / 2, 1.2, CROSSING)
+    assert perception.crossing_obstacles([ped], Net(), _kerb, behind, 8.0) == []
+
+
+def test_junction_clear_ignores_people_on_crossings():
+    assert perception.junction_clear([_ped(0, 0, 0, 1, ":J_c0_0")], "J", _kerb)
+    assert perception.junction_clear([_ped(0, 0, 0, 1, ":J_w1_0")], "J", _kerb)
+    assert not perception.junction_clear([_car(0, 0, 0, 1, ":J_3_0")], "J", _kerb)
+    assert perception.junction_clear([_car(0, 0, 0, 1, ":K_3_0")], "J", _kerb)
+
+
+def test_hold_attribution():
+    ped = _ped(10.0, 2.0, 0.0, 0.0, "side_0")
+    assert perception.attribute_hold(5.0, PATH, [], False, ()) == "stop_sign"
+    assert perception.attribute_hold(None, PATH, [ped], False, ()) == "pedestrian"
+    assert perception.attribute_hold(None, PATH, [], False, (30.0,)) == "junction"
+    assert perception.attribute_hold(None, PATH, [], False, (80.0,)) == "vehicle"
+
+
+class Junction(Net):
+    """Edges "in_x" lead to junction J, "away" elsewhere; every lane ends at (0, 0)."""
+
+    def lane(self, lane_id):
+        return Lane(np.array([[-50.0, 0.0], [0.0, 0.0]]), 50.0, 13.9)
+
+    def to_junction(self, edge_id):
+        return "J" if edge_id.startswith("in") else "K"
+
+
+def test_foe_eta_is_the_soonest_other_vehicle_into_the_junction():
+    cars = [
+        _car(-40.0, 0.0, 0.0, 10.0, lane="in_a_0"),  # 40 m at 10 m/s: 4 s
+        _car(-30.0, 0.0, 0.0, 5.0, lane="in_b_0"),  # 6 s
+        _car(-5.0, 0.0, 0.0, 10.0, lane="own_0"),  # the ego's own edge: not a foe
+        _car(-5.0, 0.0, 0.0, 0.5, lane="in_c_0"),  # standing: not a foe
+        _car(-5.0, 0.0, 0.0, 10.0, lane="away_0"),  # to another junction
+    ]
+    assert perception.foe_eta_s(cars, Junction(), "J", "own") == pytest.approx(4.0)
+    inside = [_car(0.0, 0.0, 0.0, 3.0, lane=":J_4_0")]
+    assert perception.foe_eta_s(inside, Junction(), "J", "own") == 0.0
+    assert perception.foe_eta_s(cars[2:], Junction(), "J", "own") is None
