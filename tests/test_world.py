@@ -394,6 +394,9 @@ FORMER_COLLISIONS = [
     # datagen build --towns 8 --frames 1920 --episode-seconds 120 --seed 11, spider-11-0001:
     # "v77 hit ego (junction)" at 22.7 s, the ego waiting inside the junction to turn left
     ("spider", 2138764776, "cloudy", "aggressive", 30.0),
+    # bench/sim.py --episodes 168 --seconds 60, episode 129 (with a first crossing rule that
+    # also stopped inside junctions for people on the kerb): "ego hit p146 (crossing)" at 37 s
+    ("downtown", 129, "cloudy", "normal", 40.0),
 ]
 
 

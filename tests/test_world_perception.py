@@ -92,6 +92,11 @@ def test_person_about_to_step_onto_the_crossing_from_the_kerb():
     # walking elsewhere, or still far from the crossing: not yet
     assert _crossing(_ped(20.5, -7.0, math.pi / 2, 1.2, ":J_w0_0", next_edge="other")) == []
     assert _crossing(_ped(20.5, -12.0, math.pi / 2, 1.2, ":J_w0_0", next_edge=":J_c0")) == []
+    # inside a junction only people already on the crossing count
+    inside = perception.crossing_obstacles([ped], Net(), _kerb, PATH, 8.0, ego_in_junction=True)
+    assert inside == []
+    on_it = _ped(20.0, -4.0, math.pi / 2, 1.2, CROSSING)
+    assert perception.crossing_obstacles([on_it], Net(), _kerb, PATH, 8.0, ego_in_junction=True)
 
 
 def test_ego_goes_first_only_when_it_clears_the_crossing_well_before_them():

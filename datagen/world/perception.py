@@ -125,12 +125,16 @@ def crossing_obstacles(
     kerb: Callable[[str], bool],
     path: Path,
     ego_speed_mps: float,
+    ego_in_junction: bool = False,
 ) -> list[expert.Obstacle]:
     """People on, or about to step onto, a crossing that the ego's path crosses ahead.
 
     A person counts while on the crossing and not yet past the ego's corridor (its half width
-    + CORRIDOR_SLACK_M around where the path crosses), or while walking on the kerb towards a
-    crossing (their next edge) within STEP_ON_M of it. Someone still outside the corridor is
+    + CORRIDOR_SLACK_M around where the path crosses), or, while the ego is not yet inside the
+    junction, while walking on the kerb towards a crossing (their next edge) within STEP_ON_M
+    of it. Inside a junction the ego does not stop for someone still on the kerb: standing
+    there its body can cover the crossing behind it, and SUMO's walkers then walk into it
+    (measured: "ego hit p146 (crossing)", downtown seed 129). Someone still outside the corridor is
     let go first only when the ego, at its speed (2 m/s at least), clears the crossing
     CLEAR_FIRST_S before they reach the corridor. The obstacle is the crossing's near edge.
     """
@@ -141,7 +145,12 @@ def crossing_obstacles(
             continue
         if is_crossing(a.lane_id):
             lane, on = a.lane_id, True
-        elif a.speed_mps > 0.2 and is_crossing(a.next_edge + "_0") and kerb(a.lane_id):
+        elif (
+            not ego_in_junction
+            and a.speed_mps > 0.2
+            and is_crossing(a.next_edge + "_0")
+            and kerb(a.lane_id)
+        ):
             lane, on = a.next_edge + "_0", False
         else:
             continue

@@ -20,7 +20,9 @@ step's reason names what it yields to (`junction`, `stop_sign`, `pedestrian`, `v
 choice and lane changes stay with SUMO's lane-change model.
 
 On top of SUMO's checks the expert yields to people on, or about to step onto, a crossing its
-path crosses (perception.crossing_obstacles: their next edge is the crossing), and keeps
+path crosses (perception.crossing_obstacles: their next edge is the crossing; once inside a
+junction only to people already on one, since standing there its body can cover the crossing
+behind it), and keeps
 junctions clear (expert.junction_rule): it does not enter one whose exit is blocked, nor begin a
 turn that would give way at a waiting point inside it while a foe vehicle is near (waiting
 there, the car's front can reach into the foe's lane).
@@ -327,7 +329,12 @@ class World:
             self._snap.agents, self._is_kerb, ego.lane_id.startswith(":"), self._path, leader
         )
         obstacles += perception.crossing_obstacles(
-            self._snap.agents, self._net, self._is_kerb, self._path, ego.speed_mps
+            self._snap.agents,
+            self._net,
+            self._is_kerb,
+            self._path,
+            ego.speed_mps,
+            ego.lane_id.startswith(":"),
         )
         junction = route.junction_ahead(ego.lane_id, self._path, self._snap.links)
         waits_inside, foe_eta = False, None
