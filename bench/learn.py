@@ -1,7 +1,7 @@
 """Does II-DSU learn the scene? The issue-13 check: build 8 towns, train the tiny config with one
 town held out, and score the held-out town. Prints figures and the goals; asserts nothing.
 
-    python bench/learn.py                                  # 2,880 frames, 6 epochs (~25 min)
+    python bench/learn.py                                  # 2,880 frames, 6 epochs (45 min here)
     python bench/learn.py --frames 8000 --epochs 10 --out runs/learn8k
     python bench/learn.py --data /tmp/d8 --reuse           # train again on an existing build
     python bench/learn.py --eval-only runs/learn --compare old.eval.json   # table only
@@ -77,7 +77,7 @@ def headline(result: dict) -> dict:
 
 
 def _fmt(v) -> str:
-    return "n/a" if v is None else f"{v:.3f}"
+    return "n/a" if v is None else f"{v:.4f}"
 
 
 def _goal(key: str, v) -> str:
@@ -145,7 +145,10 @@ def main() -> None:
         fit_s = _run([*fit, "--device", "cpu", *args.fit_arg])
         ev = ["training.cli", "eval", "--ckpt", str(run / "last.pt"), "--shards", str(args.data)]
         _run([*ev, "--split", "val", "--device", "cpu", "--out", str(run / "eval.json")])
-    result = json.loads((run / "eval.json").read_text())
+    evals = [p for p in (run / "eval.json", run / "last.eval.json") if p.is_file()]
+    if not evals:
+        sys.exit(f"{run}: no eval.json (run `train eval --ckpt {run}/last.pt ...` first)")
+    result = json.loads(evals[0].read_text())
     compare = json.loads(args.compare.read_text()) if args.compare else None
     print()
     print(table(result, compare))
