@@ -69,7 +69,7 @@ def main() -> None:
     finally:
         shutil.rmtree(out.parent, ignore_errors=True)
 
-    log = report.episode_log  # (t_s, rows, worker, peak_rss_mb), finishing order
+    log = report.episode_log  # (t_s, episode_id, rows, worker, peak_rss_mb), finishing order
     stats = report.manifest["statistics"]
     print(
         f"soak: {len(log)} episodes of <= {frames_per_episode} frames, {stats['frames']} frames, "
@@ -78,16 +78,22 @@ def main() -> None:
         f"{os.getloadavg()[0]:.1f} at the end (a shared machine: timings are noisy)"
     )
     print(f"status: {report.manifest['status']}; wall {wall_s:.0f} s")
-    q = max(1, len(log) // 4)
-    first, last = log[:q], log[-q:]
-    fps_first = sum(r for _, r, _, _ in first) / max(first[-1][0], 1e-9)
-    fps_last = sum(r for _, r, _, _ in last) / max(last[-1][0] - log[-q - 1][0], 1e-9)
-    print(
-        f"frames/s: first quarter ({q} episodes) {fps_first:.2f}, last quarter {fps_last:.2f}, "
-        f"ratio last/first {fps_last / fps_first:.2f}"
-    )
+    # The plan runs the towns one after the other, and towns differ in cost: compare the first
+    # and last quarter of each town's episodes, as well as of the whole build.
+    town_of = {e["episode_id"]: e["town"] for e in report.manifest["episodes"]}
+    groups = {"all": log}
+    for t in cfg.towns:
+        groups[t.name] = [x for x in log if town_of[x[1]] == t.name]
+    for name, entries in groups.items():
+        if len(entries) < 8:
+            continue
+        first, last = _rate(entries, 0, log), _rate(entries, 3, log)
+        print(
+            f"frames/s {name:<12} first quarter {first:6.2f}, last quarter {last:6.2f}, "
+            f"ratio last/first {last / first:.2f}  ({len(entries) // 4} episodes a quarter)"
+        )
     by_worker = defaultdict(list)
-    for t, _, worker, rss in log:
+    for t, _, _, worker, rss in log:
         by_worker[worker].append((t, rss))
     print("worker                        episodes  RSS after 1st (MB)  peak (MB)  growth/100 ep")
     for worker, series in sorted(by_worker.items(), key=lambda kv: kv[1][0][0]):
@@ -96,6 +102,17 @@ def main() -> None:
         print(f"{worker:<30} {n:8d}  {series[0][1]:18.0f}  {series[-1][1]:9.0f}  {growth:10.1f}")
     peak = max(rss for *_, rss in log)
     print(f"peak RSS of any worker: {peak:.0f} MB")
+
+
+def _rate(entries: list, quarter: int, log: list) -> float:
+    """Frames per second over the `quarter`-th quarter (0..3) of `entries` (a part of `log`, in
+    finishing order): its rows over the time from the finish of the episode before it in the
+    whole log (0 for the very first) to the finish of its last one."""
+    q = len(entries) // 4
+    part = entries[quarter * q : (quarter + 1) * q]
+    before = [x[0] for x in log if x[0] < part[0][0]]
+    t0 = before[-1] if before else 0.0
+    return sum(x[2] for x in part) / max(part[-1][0] - t0, 1e-9)
 
 
 if __name__ == "__main__":

@@ -151,8 +151,8 @@ class BuildReport:
 
     Attributes:
         peak_rss_mb: {"host:pid": peak resident MB} of every worker process that ran an episode.
-        episode_log: (seconds since start, rows, worker, its peak RSS in MB) of each episode this
-            run finished, in finishing order (bench/soak.py).
+        episode_log: (seconds since start, episode id, rows, worker, its peak RSS in MB) of each
+            episode this run finished, in finishing order (bench/soak.py).
     """
 
     manifest: dict
@@ -274,7 +274,13 @@ def _build(cfg, out_dir, options: RunOptions, force, runner, progress_bar) -> Bu
                     )
                     report.new_frames += record["rows"]
                     report.episode_log.append(
-                        (time.perf_counter() - start, record["rows"], ev.worker, ev.peak_rss_mb)
+                        (
+                            time.perf_counter() - start,
+                            eid,
+                            record["rows"],
+                            ev.worker,
+                            ev.peak_rss_mb,
+                        )
                     )
                     done[eid] = {**record, "status": "done"}
                     plans = plan(cfg, done)
