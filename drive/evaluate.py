@@ -78,6 +78,7 @@ def drive_route(
     `world_options` overrides WorldConfig fields (n_vehicles, n_pedestrians, warmup_s).
     `max_sim_s` stops the route after that much simulated time (bench/drive.py), unscored.
     """
+    from datagen import lidar
     from datagen.episode import SensorConfig, Sensors, episode_rng
     from datagen.scene import load_static_scene
     from drive.geometry import route_geometry
@@ -144,22 +145,23 @@ def drive_route(
                 if progress is not None:
                     progress(0)
                 t = time.perf_counter()
-                image_jpeg = lidar_png = None
+                image_jpeg = lidar_png = ground_png = None
                 if sensors is not None:
                     scene = sensors.scene(frame)
                     sweeps.appendleft(sensors.sweep(scene, frame))  # [t, t-1, t-2]
                     # until the history is full, the oldest sweep stands in for the missing ones
                     hist = list(sweeps) + [sweeps[-1]] * (HISTORY + 1 - len(sweeps))
-                    bev = sensors.lidar_bev(hist)
+                    counts = sensors.lidar_counts(hist)
                     image = sensors.image(scene, frame)
                     image_jpeg = codecs.encode_image(image, sensor_cfg.jpeg_quality)
-                    lidar_png = codecs.encode_lidar_bev(bev)
+                    lidar_png = codecs.encode_lidar_bev(lidar.lidar_bev_channels(counts))
+                    ground_png = codecs.encode_lidar_ground(lidar.ground_channel(counts))
                 timing["sensors"] += time.perf_counter() - t
                 t = time.perf_counter()
                 if planner is not None:
                     waypoints = planner(frame)
                 elif model is not None:
-                    waypoints = model.plan(frame, image_jpeg, lidar_png)
+                    waypoints = model.plan(frame, image_jpeg, lidar_png, ground_png)
                 elif spec.kind == "constant":
                     waypoints = constant_waypoints()
                 if waypoints is not None:

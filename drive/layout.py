@@ -1,7 +1,7 @@
 """The scene layout the infractions are judged against, from the sensors' own static scene.
 
-Built from `datagen.scene.StaticScene` (the mesh the LiDAR and camera see and the BEV polygons
-the labels paint), world frame, metres:
+Built from `datagen.scene.StaticScene` (the mesh the LiDAR and camera see and its `label_map`,
+the BEV polygons the labels paint), world frame, metres:
 
 - road: the drivable polygons (BEV class 1: car lanes, junctions) minus the cut-outs painted
   over them (class 0: sidewalks, walking areas);
@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from datagen.scene import TRUNK_RGB, Material, StaticScene
+from datagen.mesh import Material
+from datagen.scene import TRUNK_RGB, StaticScene
 
 
 def box_corners(x_m: float, y_m: float, yaw_rad: float, length_m: float, width_m: float):
@@ -62,12 +63,13 @@ class Layout:
         """The layout of the sensors' static scene."""
         import shapely
 
+        labels = static.label_map
         rings = [
-            static.bev_xy_m[static.bev_start[p] : static.bev_start[p + 1]].astype(np.float64)
-            for p in range(len(static.bev_class))
+            labels.xy_m[labels.start[p] : labels.start[p + 1]].astype(np.float64)
+            for p in range(len(labels.class_id))
         ]
-        road = [shapely.Polygon(r) for r, c in zip(rings, static.bev_class) if c == 1]
-        kerb = [shapely.Polygon(r) for r, c in zip(rings, static.bev_class) if c == 0]
+        road = [shapely.Polygon(r) for r, c in zip(rings, labels.class_id) if c == 1]
+        kerb = [shapely.Polygon(r) for r, c in zip(rings, labels.class_id) if c == 0]
         mat = static.material
         up = static.normals[:, 2] > 0.5
         trunk = (mat == Material.VEGETATION) & np.all(static.colour_rgb == TRUNK_RGB, axis=1)

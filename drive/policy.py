@@ -98,13 +98,17 @@ class ModelPolicy:
         self.model = model_from_checkpoint(state, self.device)
         self.torch = torch
 
-    def plan(self, frame: FrameState, image_jpeg: bytes, lidar_png: bytes) -> np.ndarray:
-        """(4, 2) waypoints, ego frame, m, from one instant's encoded sensors."""
+    def plan(
+        self, frame: FrameState, image_jpeg: bytes, lidar_png: bytes, ground_png: bytes
+    ) -> np.ndarray:
+        """(4, 2) waypoints, ego frame, m, from one instant's encoded sensors (`ground_png`, the
+        current sweep's ground channel, is read by a single-frame LiDAR model only)."""
         from training.data import model_inputs
         from training.fit import autocast
 
         torch = self.torch
-        image, lidar = model_inputs(image_jpeg, lidar_png)
+        ground = ground_png if self.model.cfg.single_frame_lidar else None
+        image, lidar = model_inputs(image_jpeg, lidar_png, ground)
         pose = frame.ego.pose
         tp = pose.ego_from_world(np.array([frame.target_point_xy_m]))[0]
         dev = self.device
