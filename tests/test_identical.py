@@ -28,9 +28,9 @@ EPISODES = (
     ("grid3-3-0", 3, "sunny", "normal", 5),
     ("grid3-8-1", 8, "rainy", "aggressive", 3),
 )
-EXPECTED_SHA256 = {  # scene v2, data v4, schema 1.1
-    "grid3-3-0": "6fb23743a3c39c524477572362e79e1a5fa531c4dfd389d5f665e8d0669909ca",
-    "grid3-8-1": "2c80553d67ff627b1a8de4009e6ca1549b9a1d8a6da6c4a3ae35df5c59684363",
+EXPECTED_SHA256 = {  # scene v2, data v5, schema 1.1
+    "grid3-3-0": "11d885beb68b995086ebb262d27ca5de8da792eaaca0204374f23e59b94390bd",
+    "grid3-8-1": "ae813bea43def8b406b96c7cb681c1f3cc50c92e25546eda159845363cfd61a1",
 }
 
 
