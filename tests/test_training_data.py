@@ -221,7 +221,11 @@ def test_targets_and_eval_truth_skip_agents_without_lidar_hits(tmp_path):
 
 
 def _with_ground_t(table, ground):
-    column = pa.array([codecs.encode_bev_semantic(g) for g in ground], pa.binary())
+    """`table` with its `lidar_ground_t` column (added or replaced) holding `ground`."""
+    column = pa.array([codecs.encode_lidar_ground(g) for g in ground], pa.binary())
+    i = table.schema.get_field_index(data.GROUND_T)
+    if i >= 0:
+        return table.set_column(i, data.GROUND_T, column)
     return table.append_column(data.GROUND_T, column)
 
 
@@ -240,7 +244,10 @@ def test_single_frame_lidar_reads_the_current_sweeps_ground_hits(tmp_path):
         assert (s["lidar"][1] == m["lidar"][1]).all()  # above-ground hits at t
     # A dataset written before the column existed: one clear error for the ablation only.
     (tmp_path / "old" / "alpha").mkdir(parents=True)
-    pq.write_table(table, tmp_path / "old" / "alpha" / "e-0-0.parquet")
+    # a schema 1.0 shard: no such column, and 1.0 in its metadata
+    old_meta = {**table.schema.metadata, schemas.META_SCHEMA_VERSION.encode(): b"1.0"}
+    old_table = table.drop_columns([data.GROUND_T]).replace_schema_metadata(old_meta)
+    pq.write_table(old_table, tmp_path / "old" / "alpha" / "e-0-0.parquet")
     old = data.scan(tmp_path / "old")
     assert len(list(data.FrameStream(old, 32))) == 3
     with pytest.raises(UserError, match="no 'lidar_ground_t' column.*--single-frame-lidar"):

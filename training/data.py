@@ -186,8 +186,8 @@ def model_inputs(
     and above-ground hits. Closed-loop driving (drive/) feeds the model through this too, so it
     sees what it was trained on."""
     lidar = codecs.decode_lidar_bev(lidar_bev).transpose(2, 0, 1)
-    if lidar_ground_t is not None:  # the same 1-channel PNG codec as bev_semantic
-        lidar = np.stack([codecs.decode_bev_semantic(lidar_ground_t), lidar[1]])
+    if lidar_ground_t is not None:
+        lidar = np.stack([codecs.decode_lidar_ground(lidar_ground_t), lidar[1]])
     return (
         np.ascontiguousarray(codecs.decode_image(image).transpose(2, 0, 1)),
         np.ascontiguousarray(lidar),
