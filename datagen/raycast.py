@@ -149,21 +149,37 @@ class FrameScene:
         dists = np.full(n, max_dist_m, np.float32)
         out = self._run(self.static_embree, origins, directions, dists, output=1)
         prim, dist = out["primID"], out["tfar"]
-        if self.actor_embree is not None:
-            idx = np.arange(n) if actor_rays is None else actor_rays
-            if len(idx):
-                a = self._run(
-                    self.actor_embree,
-                    np.take(origins, idx, axis=0),
-                    np.take(directions, idx, axis=0),
-                    dist[idx],
-                    output=1,
-                )
-                hit = a["primID"] >= 0
-                prim[idx[hit]] = a["primID"][hit] + self.n_static
-                dist[idx[hit]] = a["tfar"][hit]
+        rays, actor_prim, actor_dist = self._actor_hits(origins, directions, dist, actor_rays)
+        prim[rays] = actor_prim + self.n_static
+        dist[rays] = actor_dist
         dist[prim < 0] = np.inf
         return dist, prim
+
+    def _actor_hits(
+        self,
+        origins: np.ndarray,
+        directions: np.ndarray,
+        dist: np.ndarray,
+        actor_rays: np.ndarray | None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Cast the rays `actor_rays` (all if None) against the actors, each only up to its
+        static hit `dist`: (indices of the rays that hit an actor first (K,), the actor
+        primitive each hit (K,), the hit distances (K,) m)."""
+        none = np.zeros(0, np.int64)
+        if self.actor_embree is None:
+            return none, none, np.zeros(0, np.float32)
+        idx = np.arange(len(origins)) if actor_rays is None else actor_rays
+        if not len(idx):
+            return none, none, np.zeros(0, np.float32)
+        a = self._run(
+            self.actor_embree,
+            np.take(origins, idx, axis=0),
+            np.take(directions, idx, axis=0),
+            dist[idx],
+            output=1,
+        )
+        hit = a["primID"] >= 0
+        return idx[hit], a["primID"][hit], a["tfar"][hit]
 
     def distances(
         self,
@@ -180,19 +196,9 @@ class FrameScene:
         dist = self._run(self.static_embree, origins, directions, dists, "DISTANCE")
         dist = np.minimum(dist, np.float32(max_dist_m)).astype(np.float32)
         actor = np.full(n, -1, np.int32)
-        if self.actor_embree is not None:
-            idx = np.arange(n) if actor_rays is None else actor_rays
-            if len(idx):
-                a = self._run(
-                    self.actor_embree,
-                    np.take(origins, idx, axis=0),
-                    np.take(directions, idx, axis=0),
-                    dist[idx],
-                    output=1,
-                )
-                hit = a["primID"] >= 0
-                actor[idx[hit]] = self.actors.actor[a["primID"][hit]]
-                dist[idx[hit]] = a["tfar"][hit]
+        rays, actor_prim, actor_dist = self._actor_hits(origins, directions, dist, actor_rays)
+        actor[rays] = self.actors.actor[actor_prim]
+        dist[rays] = actor_dist
         dist[dist >= max_dist_m] = np.inf
         return dist, actor
 
