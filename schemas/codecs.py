@@ -58,37 +58,39 @@ def decode_lidar_bev(data: bytes) -> np.ndarray:
     return cv2.cvtColor(bgra, cv2.COLOR_BGRA2RGBA)
 
 
-def encode_lidar_ground(counts: np.ndarray) -> bytes:
-    """(H, W) uint8 counts -> 1-channel PNG (the `lidar_ground_t` column)."""
-    if counts.dtype != np.uint8 or counts.ndim != 2:
-        raise ValueError(f"lidar_ground_t must be (H, W) uint8, got {counts.shape} {counts.dtype}")
-    ok, buf = cv2.imencode(".png", counts, LIDAR_PNG_PARAMS)
+def _encode_png_1ch(array: np.ndarray, column: str, params: list[int]) -> bytes:
+    """(H, W) uint8 -> 1-channel PNG written with `params`; `column` names it in errors."""
+    if array.dtype != np.uint8 or array.ndim != 2:
+        raise ValueError(f"{column} must be (H, W) uint8, got {array.shape} {array.dtype}")
+    ok, buf = cv2.imencode(".png", array, params)
     if not ok:
         raise ValueError("PNG encoding failed")
     return buf.tobytes()
+
+
+def _decode_png_1ch(data: bytes) -> np.ndarray:
+    """1-channel PNG bytes -> (H, W) uint8."""
+    array = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if array is None or array.ndim != 2:
+        raise ValueError("not a 1-channel PNG")
+    return array
+
+
+def encode_lidar_ground(counts: np.ndarray) -> bytes:
+    """(H, W) uint8 counts -> 1-channel PNG (the `lidar_ground_t` column)."""
+    return _encode_png_1ch(counts, "lidar_ground_t", LIDAR_PNG_PARAMS)
 
 
 def decode_lidar_ground(data: bytes) -> np.ndarray:
     """PNG bytes -> (H, W) uint8 counts."""
-    counts = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if counts is None or counts.ndim != 2:
-        raise ValueError("not a 1-channel PNG")
-    return counts
+    return _decode_png_1ch(data)
 
 
 def encode_bev_semantic(classes: np.ndarray) -> bytes:
     """(H, W) uint8 class ids -> 1-channel PNG."""
-    if classes.dtype != np.uint8 or classes.ndim != 2:
-        raise ValueError(f"bev_semantic must be (H, W) uint8, got {classes.shape} {classes.dtype}")
-    ok, buf = cv2.imencode(".png", classes, CLASSES_PNG_PARAMS)
-    if not ok:
-        raise ValueError("PNG encoding failed")
-    return buf.tobytes()
+    return _encode_png_1ch(classes, "bev_semantic", CLASSES_PNG_PARAMS)
 
 
 def decode_bev_semantic(data: bytes) -> np.ndarray:
     """PNG bytes -> (H, W) uint8 class ids."""
-    classes = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if classes is None or classes.ndim != 2:
-        raise ValueError("not a 1-channel PNG")
-    return classes
+    return _decode_png_1ch(data)
