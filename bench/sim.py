@@ -1,7 +1,7 @@
 """Benchmark the driving world: simulation speed, ego behaviour per profile, safety.
 
     python bench/sim.py                    # 24 episodes of 120 s over the 8 towns
-    python bench/sim.py --episodes 424 --seconds 180 --workers 2 --quiet   # paper scale
+    python bench/sim.py --episodes 420 --seconds 180 --workers 2 --quiet   # paper scale
 
 Prints per episode and in total: simulated seconds per wall second (the World's own stepping,
 expert included, recorded at 2 Hz), wall milliseconds per recorded frame, mean ego speed and

@@ -38,14 +38,16 @@ HISTORY = 2  # past sweeps in the LiDAR BEV (t-1, t-2)
 FUTURE = labels.FUTURE_FRAMES  # 4 future states for +2.0 s waypoints
 STAGES = ("sim", "scene", "lidar", "camera", "labels", "encode")
 
-DATA_VERSION = 5
+DATA_VERSION = 6
 """What the generator writes, beyond the scene (bump it with every change of shard bytes for the
 same seed; tests/test_identical.py pins them; data/README.md lists the changes):
 1 the first release; 2 PNG columns encoded with no/UP row filter + RLE (same decoded arrays);
 3 the `lidar_ground_t` column (schema 1.1); 4 every signal head lit with its own light's real
 state at any distance (was: only the heads showing the ego's governing light within 30 m);
 5 the expert yields to people at crossings and keeps junctions clear, and an episode that ends
-in an ego collision loses its last 5 s of frames (datagen/world/world.py `record`)."""
+in an ego collision loses its last 5 s of frames (datagen/world/world.py `record`); 6 the expert
+yields to people its body would sweep on a turn and waits out a green too short to clear the
+junction (datagen/world/perception.py `swept_contact`, datagen/expert.py `light_rule`)."""
 
 
 def generator_version() -> str:

@@ -20,7 +20,11 @@ Rules:
                   holds gap - min_gap = v T at equal speeds
     pedestrian    stop `ped_margin` before a pedestrian on or entering the path
     red_light     stop `stop_line_margin` before the line at red, and at yellow when it can
-                  stop comfortably (v^2 / 2b <= distance); otherwise it goes on through
+                  stop comfortably (v^2 / 2b <= distance); otherwise it goes on through. At a
+                  green that ends too soon for a slow car to clear the junction (it would need
+                  longer than the green left plus YELLOW_S at CLEAR_SPEED_MPS, and it can still
+                  stop comfortably before the line), wait for the next green: lingering inside
+                  into the crossing phase got the ego hit (arterial seed 284, "v51 hit ego")
     stop_sign     come to a full stop at the stop line until `stop_done` (world.py holds the
                   stop for `STOP_WAIT_S` and until no other vehicle is inside the junction), then
                   SUMO's right-of-way model decides when to enter
@@ -54,6 +58,10 @@ BLOCKING_MPS = 2.0
 # foe vehicle is less than this far from the junction: waiting inside, the car's front can
 # reach into the foe's lane (measured: a "v77 hit ego (junction)" collision in the spider town).
 FOE_GAP_S = 5.0
+# A green is not entered when clearing the junction at (at least) this speed would outlast the
+# green left plus the shortest yellow (SUMO's tls default: 3 s); see light_rule.
+CLEAR_SPEED_MPS = 4.0
+YELLOW_S = 3.0
 
 
 @dataclass(frozen=True)
@@ -94,6 +102,7 @@ class ExpertInput:
             inside a junction or without one ahead.
         waits_inside: the ego's link there gives way at a waiting point inside the junction.
         foe_eta_s: soonest arrival of another vehicle at that junction, s; None if none.
+        green_left_s: seconds until a green `light` at that junction ends; None if unknown.
     """
 
     speed_mps: float
@@ -110,6 +119,7 @@ class ExpertInput:
     junction_exit_m: float | None = None
     waits_inside: bool = False
     foe_eta_s: float | None = None
+    green_left_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -171,11 +181,20 @@ def pedestrian_rule(inp: ExpertInput, p: Profile) -> float:
 
 
 def light_rule(inp: ExpertInput, p: Profile) -> float:
-    if inp.light not in ("red", "yellow") or inp.light_distance_m is None:
+    if inp.light_distance_m is None:
         return math.inf
     b = p.ego_comfort_decel_mps2
     room = inp.light_distance_m - STOP_LINE_MARGIN_M
     v = inp.speed_mps
+    if inp.light == "green":
+        if inp.green_left_s is None or inp.junction_exit_m is None:
+            return math.inf
+        t_clear = (inp.junction_exit_m + KEEP_CLEAR_ROOM_M) / max(v, CLEAR_SPEED_MPS)
+        if t_clear <= inp.green_left_s + YELLOW_S or v * v / (2.0 * b) > inp.light_distance_m:
+            return math.inf  # clears it in time, or cannot stop comfortably before it: go on
+        return approach_speed(room, 0.0, b)
+    if inp.light not in ("red", "yellow"):
+        return math.inf
     if inp.light == "yellow" and v * v / (2.0 * b) > room + 0.5:
         return math.inf  # cannot stop comfortably: clear the junction on yellow
     if inp.light == "red" and v * v / (2.0 * p.emergency_decel_mps2) > inp.light_distance_m:

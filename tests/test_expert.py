@@ -100,6 +100,28 @@ def test_red_too_close_to_stop_even_hard_goes_on():
     assert d.reason != "red_light"
 
 
+def test_slow_car_waits_for_the_next_green_when_this_one_ends_before_it_clears():
+    def at(speed, dist, green_left):
+        inp = ExpertInput(
+            speed,
+            LIMIT,
+            light="green",
+            light_distance_m=dist,
+            junction_entry_m=dist,
+            junction_exit_m=dist + 20.0,
+            green_left_s=green_left,
+        )
+        return decide(inp, P)
+
+    # creeping up to the line at 1 m/s with 1 s of green left: 26 m at 4 m/s take 6.5 s
+    assert at(1.0, 2.0, 1.0).reason == "red_light"
+    assert at(0.0, 0.5, 1.0) == Decision(0.0, "red_light")
+    assert at(1.0, 2.0, 10.0).reason == "none"  # enough green left
+    assert at(10.0, 8.0, 0.5).reason == "none"  # too close to stop comfortably: goes on
+    assert at(10.0, 40.0, 0.5).reason == "none"  # at 10 m/s it clears within the yellow
+    assert at(1.0, 2.0, None).reason == "none"  # green left unknown (no signal read)
+
+
 def test_stop_sign_full_stop_then_released():
     d = decide(ExpertInput(0.05, LIMIT, stop_distance_m=expert.STOP_SIGN_MARGIN_M), P)
     assert d == Decision(0.0, "stop_sign")

@@ -28,9 +28,9 @@ EPISODES = (
     ("grid3-3-0", 3, "sunny", "normal", 5),
     ("grid3-8-1", 8, "rainy", "aggressive", 3),
 )
-EXPECTED_SHA256 = {  # scene v2, data v5, schema 1.1
-    "grid3-3-0": "11d885beb68b995086ebb262d27ca5de8da792eaaca0204374f23e59b94390bd",
-    "grid3-8-1": "ae813bea43def8b406b96c7cb681c1f3cc50c92e25546eda159845363cfd61a1",
+EXPECTED_SHA256 = {  # scene v2, data v6, schema 1.1
+    "grid3-3-0": "ab35629f28936fb762414251a7e5343f20e2a9b1ff0581085b766e28b44b2a01",
+    "grid3-8-1": "1dd1600d10f925d0835dad4359dd8aabc4a81b4079e0a5909bf92ee144c17593",
 }
 
 

@@ -397,6 +397,14 @@ FORMER_COLLISIONS = [
     # bench/sim.py --episodes 168 --seconds 60, episode 129 (with a first crossing rule that
     # also stopped inside junctions for people on the kerb): "ego hit p146 (crossing)" at 37 s
     ("downtown", 129, "cloudy", "normal", 40.0),
+    # bench/sim.py --episodes 420 --seconds 180 --workers 2: someone standing on the walking
+    # area at the inside of a right turn, swept by the car's body (before the swept check)
+    ("roundabout", 334, "cloudy", "normal", 20.0),  # "ego hit p63 (crossing)" at 16.7 s
+    ("roundabout", 294, "rainy", "cautious", 30.0),  # "ego hit p23 (crossing)" at 26.4 s
+    ("downtown", 281, "cloudy", "aggressive", 130.0),  # "ego hit p199 (crossing)" at 128.2 s
+    # ... and the ego entering a left turn at 1 m/s 0.2 s before its green ended, still inside
+    # when the crossing phase began (before the green-left check): "v51 hit ego" at 127.4 s
+    ("arterial", 284, "rainy", "cautious", 130.0),
 ]
 
 

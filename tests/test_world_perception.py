@@ -72,6 +72,43 @@ def test_person_at_the_kerb_counts_only_where_they_will_be():
     assert perception.obstacles([walking_in], _kerb, True, PATH, None) == []
 
 
+def _right_turn(radius=6.0):
+    """5 m east, a quarter circle of `radius` turning right (centre (5, -radius)), 30 m south."""
+    th = np.linspace(0.0, math.pi / 2, 40)
+    arc = np.stack([5.0 + radius * np.sin(th), -radius + radius * np.cos(th)], 1)
+    pts = np.vstack([[0.0, 0.0], arc, arc[-1] + [0.0, -30.0]])
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pts, axis=0).T))])
+    return route.Path(pts, s, (), ())
+
+
+def test_person_standing_at_the_kerb_inside_a_turn_is_swept_by_the_body():
+    # 1.7 m from the front's path at the corner: the front clears them, the car's body (the
+    # chord from its front back one length, as SUMO's box) cuts the corner and would not
+    path = _right_turn()
+    c, r = np.array([5.0, -6.0]), 6.0
+    diag = np.array([math.sqrt(0.5), math.sqrt(0.5)])
+    inside = _ped(*(c + (r - 1.7) * diag), -math.pi / 4, 0.0, "side_0")
+    obs = perception.obstacles([inside], _kerb, True, path, None)
+    assert [o.kind for o in obs] == ["pedestrian"] and 2.0 < obs[0].distance_m < 12.0
+    outside = _ped(*(c + (r + 1.9) * diag), -math.pi / 4, 0.0, "side_0")
+    assert perception.obstacles([outside], _kerb, True, path, None) == []
+    # beside a straight path the body is the front's path: 1.2 m off brushes, 2 m does not
+    assert perception.obstacles([_ped(30.0, 1.2, 0.0, 0.0, "side_0")], _kerb, False, PATH, None)
+    assert (
+        perception.obstacles([_ped(30.0, 2.0, 0.0, 0.0, "side_0")], _kerb, False, PATH, None) == []
+    )
+
+
+def test_swept_contact_is_where_the_front_has_travelled_at_first_touch():
+    far = perception.swept_contact(
+        np.array([[20.0, 1.0], [-2.0, 1.0], [20.0, 3.0]]), np.full(3, 0.3), PATH, 4.7, 0.9
+    )
+    # ahead: the front reaches x = 20 - 0 (the point is 1 m off, within 0.9 + 0.3): u ~ 19.5..20
+    assert 19.0 <= far[0] <= 20.0
+    assert far[1] == 0.0  # beside the body now
+    assert far[2] == math.inf  # 3 m off never touches
+
+
 def test_person_on_the_crossing_walking_towards_the_path_is_yielded_to():
     ped = _ped(20.0, -4.0, math.pi / 2, 1.2, CROSSING)  # 4 m south of the path, walking north
     (o,) = _crossing(ped)

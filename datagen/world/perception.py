@@ -20,6 +20,14 @@ CROSSING_HALF_WIDTH_M = 2.0  # SUMO crossings are 4 m wide (netconvert's default
 CORRIDOR_SLACK_M = 1.0  # a person this close to the ego's corridor across a crossing is in it
 STEP_ON_M = 2.0  # someone walking to a crossing this close to its end is about to step on
 CLEAR_FIRST_S = 1.5  # the ego goes first only if it clears the crossing this long before them
+# The car's body sweeps inside its front's path on a turn (SUMO's box is the chord from the
+# front back one length along the lane): people standing, even at the kerb, are checked against
+# that swept body, sampled every SWEEP_STEP_M of the front's travel up to SWEEP_AHEAD_M, with
+# this clearance (measured: three "ego hit p.. (crossing)" with someone standing on the walking
+# area at the inside of a right turn, 420 episodes of bench/sim.py).
+SWEEP_CLEARANCE_M = 0.3
+SWEEP_STEP_M = 0.5
+SWEEP_AHEAD_M = 40.0
 
 
 def is_kerb(lane_id: str, allowed: tuple[str, ...] | None) -> bool:
@@ -33,6 +41,38 @@ def is_kerb(lane_id: str, allowed: tuple[str, ...] | None) -> bool:
 def is_crossing(lane_id: str) -> bool:
     """An internal lane of a pedestrian crossing."""
     return _CROSSING.search(lane_id) is not None
+
+
+def swept_contact(
+    xy: np.ndarray, clearance_m: np.ndarray, path: Path, length_m: float, half_width_m: float
+) -> np.ndarray:
+    """How far the ego's front travels along `path` before its body comes within `clearance_m`
+    (K,) of each point `xy` (K, 2), m; inf where it does not within SWEEP_AHEAD_M.
+
+    The body at front distance u is the segment from the path point u - `length_m` to the path
+    point u, `half_width_m` wide (behind its start the path goes straight back along its first
+    segment). Sampled every SWEEP_STEP_M, the current pose first."""
+    pts, s = path.pts, path.s
+    u = np.arange(0.0, min(float(s[-1]), SWEEP_AHEAD_M) + 1e-9, SWEEP_STEP_M)
+    d0 = pts[1] - pts[0]
+    d0 = d0 / max(float(np.hypot(*d0)), 1e-9)
+
+    def at(q: np.ndarray) -> np.ndarray:
+        p = np.stack([np.interp(q, s, pts[:, 0]), np.interp(q, s, pts[:, 1])], 1)
+        back = q < s[0]
+        p[back] = pts[0] + (q[back] - s[0])[:, None] * d0
+        return p
+
+    front, rear = at(u), at(u - length_m)  # (U, 2)
+    seg = front - rear
+    l2 = np.maximum((seg * seg).sum(1), 1e-9)
+    rel = xy[:, None, :] - rear[None]  # (K, U, 2)
+    t = np.clip((rel * seg[None]).sum(-1) / l2, 0.0, 1.0)
+    off = rel - t[..., None] * seg[None]
+    dist = np.sqrt((off * off).sum(-1))  # (K, U)
+    touch = dist < half_width_m + clearance_m[:, None]
+    first = touch.argmax(1)
+    return np.where(touch.any(1), u[first], np.inf)
 
 
 def obstacles(
@@ -70,8 +110,9 @@ def obstacles(
         width = np.array([d[1] for d in box])
         is_ped = np.array([d[3] == "pedestrian" for d in box])
         # People on a sidewalk or walking area count only where they will be (entering the
-        # road), not where they stand: someone waiting at the kerb is not on the path, and
-        # yielding to them would deadlock with SUMO, where they wait for the car.
+        # road), or where the car's swept body would touch them (below), not where they
+        # stand: someone waiting at the kerb is not on the path, and yielding to them would
+        # deadlock with SUMO, where they wait for the car.
         kerb_a = np.asarray(kerb_l)
         near = np.hypot(*(xy_a - pts[0]).T) < s[-1] + 15.0
         if near.any():
@@ -109,6 +150,18 @@ def obstacles(
                     else:
                         v_along = max(0.0, float(spd_a[i] * np.cos(rel[j])))
                         out.append(expert.Obstacle(gap, v_along, "vehicle", ids[i]))
+            # people standing or walking, kerb included, against the body swept on turns
+            peds = k[is_ped[k]]
+            if len(peds):
+                along, lat, _ = project(xy_a[peds], pts, s)
+                ok = (lat < half_w + 2.0) & (along > -EGO_DIMS_M[0]) & (along < SWEEP_AHEAD_M)
+                cand = peds[ok]
+                if len(cand):
+                    radius = 0.5 * np.maximum(length[cand], width[cand]) + SWEEP_CLEARANCE_M
+                    reach = swept_contact(xy_a[cand], radius, path, EGO_DIMS_M[0], half_w)
+                    for i, u in zip(cand, reach):
+                        if np.isfinite(u):
+                            out.append(expert.Obstacle(float(u), 0.0, "pedestrian", ids[i]))
     if leader is not None:
         # SUMO's gap leaves out the ego vType's minGap (1 m); "lead:" marks the lane leader
         out.append(

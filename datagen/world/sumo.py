@@ -476,6 +476,11 @@ class Sumo:
         tl = self._ls.trafficlight
         return tuple((t, tl.getRedYellowGreenState(t)) for t in tl.getIDList())
 
+    def switch_in_s(self, tls_id: str) -> float:
+        """Seconds until traffic light `tls_id` next changes phase (getNextSwitch)."""
+        ls = self._ls
+        return float(ls.trafficlight.getNextSwitch(tls_id) - ls.simulation.getTime())
+
     def step(self) -> None:
         self._ls.simulationStep()
 

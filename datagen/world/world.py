@@ -86,6 +86,7 @@ from schemas import WEATHERS
 AGENT_RADIUS_M = 100.0  # agents within this distance of the ego are in FrameState.agents
 BLOCKED_S = 80.0  # ego standing this long (not at a red light) ends the episode ("blocked")
 WARMUP_S = 10.0  # traffic runs this long before the ego is inserted
+GREEN_CHECK_M = 30.0  # within this of a signalled junction the expert reads the green left
 # record() drops the frames of the last 5 s before an ego collision: more than the 2 s of future
 # waypoints a frame is labelled with plus ~3 s of approach, so no frame shows driving into it.
 COLLISION_DROP_S = 5.0
@@ -346,6 +347,10 @@ class World:
                 route.junction_of(self._snap.links[0].via_lane_id),
                 ego.road_id,
             )
+        green_left = None
+        near = junction is not None and junction[0] < GREEN_CHECK_M
+        if near and sig.light == "green" and abs(sig.light_distance_m - junction[0]) < 3.0:
+            green_left = self._sumo.switch_in_s(self._snap.next_signals[0].tls_id)
         return expert.ExpertInput(
             speed_mps=ego.speed_mps,
             speed_limit_mps=float(limit),
@@ -361,6 +366,7 @@ class World:
             junction_exit_m=junction[1] if junction else None,
             waits_inside=waits_inside,
             foe_eta_s=foe_eta,
+            green_left_s=green_left,
         )
 
     def _set_route(self, edges: list[str] | tuple[str, ...]) -> None:
