@@ -488,7 +488,10 @@ def _replace_path(obj, path: list[str], value: str, item: str):
             new = type(current)(json.loads(value))
     except (KeyError, ValueError, TypeError):
         raise UserError(f"--sensor {item!r}: cannot read {value!r} for {path[0]}") from None
-    return dataclasses.replace(obj, **{path[0]: new})
+    try:
+        return dataclasses.replace(obj, **{path[0]: new})
+    except ValueError as e:  # the config's own check (__post_init__)
+        raise UserError(f"--sensor {item!r}: {e}") from None
 
 
 def resolve_towns(args) -> tuple[Town, ...]:

@@ -38,7 +38,7 @@ HISTORY = 2  # past sweeps in the LiDAR BEV (t-1, t-2)
 FUTURE = labels.FUTURE_FRAMES  # 4 future states for +2.0 s waypoints
 STAGES = ("sim", "scene", "lidar", "camera", "labels", "encode")
 
-DATA_VERSION = 6
+DATA_VERSION = 7
 """What the generator writes, beyond the scene (bump it with every change of shard bytes for the
 same seed; tests/test_identical.py pins them; data/README.md lists the changes):
 1 the first release; 2 PNG columns encoded with no/UP row filter + RLE (same decoded arrays);
@@ -47,7 +47,8 @@ state at any distance (was: only the heads showing the ego's governing light wit
 5 the expert yields to people at crossings and keeps junctions clear, and an episode that ends
 in an ego collision loses its last 5 s of frames (datagen/world/world.py `record`); 6 the expert
 yields to people its body would sweep on a turn and waits out a green too short to clear the
-junction (datagen/world/perception.py `swept_contact`, datagen/expert.py `light_rule`)."""
+junction (datagen/world/perception.py `swept_contact`, datagen/expert.py `light_rule`); 7 the
+target point is the next point of the sparse route plan by default (SensorConfig.target_point)."""
 
 
 def generator_version() -> str:
@@ -83,6 +84,10 @@ class SensorConfig:
         jpeg_quality: of the stored camera crop.
         pose_noise_m, pose_noise_rad: GPS/IMU noise (standard deviation) on the poses that align
             the t-1 and t-2 sweeps; 0 = exact recorded poses.
+        target_point: the `target_point` column's form, "sparse" (the next point of the sparse
+            route plan, the paper's route goal) or "dense" (30 m along the lane path); see
+            datagen/world/world.py WorldConfig. Not a sensor, but it shapes the data, so it is
+            recorded here (iidsu.config_json) and set with `--sensor target_point=dense`.
     """
 
     lidar: lidar.LidarConfig = field(default_factory=lidar.LidarConfig)
@@ -90,6 +95,13 @@ class SensorConfig:
     jpeg_quality: int = codecs.DEFAULT_JPEG_QUALITY
     pose_noise_m: float = 0.0
     pose_noise_rad: float = 0.0
+    target_point: str = "sparse"
+
+    def __post_init__(self):
+        from datagen.world.route import TARGET_FORMS
+
+        if self.target_point not in TARGET_FORMS:
+            raise ValueError(f"target_point must be one of {TARGET_FORMS}")
 
     def to_dict(self) -> dict:
         """Everything that shapes the data, for the shard metadata (iidsu.config_json): this
@@ -201,7 +213,11 @@ def run_episode(
     static = load_static_scene(net)
     sense = Sensors(static, sensors, spec.weather, episode_rng(spec.seed))
     config = WorldConfig(
-        net_path=net, seed=spec.seed, weather=spec.weather, behaviour=spec.behaviour
+        net_path=net,
+        seed=spec.seed,
+        weather=spec.weather,
+        behaviour=spec.behaviour,
+        target_point=sensors.target_point,
     )
     timer = _Timer()
     states: list[FrameState] = []

@@ -573,6 +573,11 @@ def test_sensor_overrides_reach_the_config():
         build.parse_sensors(["lidar.bogus=1"])
     with pytest.raises(UserError, match="cannot read 'many'"):
         build.parse_sensors(["jpeg_quality=many"])
+    # the target point's form is recorded with the sensors (iidsu.config_json); sparse by default
+    assert build.parse_sensors([]).to_dict()["target_point"] == "sparse"
+    assert build.parse_sensors(["target_point=dense"]).target_point == "dense"
+    with pytest.raises(UserError, match="target_point must be one of"):
+        build.parse_sensors(["target_point=lane"])
 
 
 def test_validate_reports_a_corrupt_shard_on_one_line(small, tmp_path):

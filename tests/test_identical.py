@@ -28,9 +28,9 @@ EPISODES = (
     ("grid3-3-0", 3, "sunny", "normal", 5),
     ("grid3-8-1", 8, "rainy", "aggressive", 3),
 )
-EXPECTED_SHA256 = {  # scene v2, data v6, schema 1.1
-    "grid3-3-0": "ab35629f28936fb762414251a7e5343f20e2a9b1ff0581085b766e28b44b2a01",
-    "grid3-8-1": "1dd1600d10f925d0835dad4359dd8aabc4a81b4079e0a5909bf92ee144c17593",
+EXPECTED_SHA256 = {  # scene v2, data v7, schema 1.1
+    "grid3-3-0": "5575a3a84926f6ffe180ed5756c0dbfc8730277a64e7a265361553223a6c7469",
+    "grid3-8-1": "4764e906d0055346a06e958e918ab16adf3759d2b85886087d55480b4cf42f5f",
 }
 
 

@@ -247,6 +247,29 @@ def test_not_a_network_is_a_clear_error_and_leaves_no_simulation_open(tmp_path):
         world.advance(1.0)
 
 
+def test_sparse_target_is_the_route_plan_ahead_and_dense_the_lane_look_ahead():
+    """Same seed, both forms: the trajectories are the same (the target is only a label), the
+    sparse target is a plan point ahead that changes in jumps (a point is held until reached),
+    the dense one moves with the car 30 m ahead (or 5 m into a junction's exit lane)."""
+    runs = {}
+    for form in ("sparse", "dense"):
+        cfg = WorldConfig(town_net_path("downtown"), 5, "sunny", "normal", target_point=form)
+        with World(cfg) as world:
+            runs[form] = list(record(world, 120, drop_before_collision_s=0.0))
+    sparse, dense = runs["sparse"], runs["dense"]
+    assert [f.ego.pose for f in sparse] == [f.ego.pose for f in dense]
+    tps = [tuple(f.target_point_xy_m) for f in sparse]
+    ahead = [f.ego.pose.ego_from_world(np.array([tp]))[0] for f, tp in zip(sparse, tps)]
+    assert all(x > 0.0 and math.hypot(x, y) < 80.0 for x, y in ahead)
+    held = sum(a == b for a, b in zip(tps, tps[1:]))
+    assert held > len(tps) // 2  # a plan point is the target for several frames
+    assert len(set(tps)) >= 4  # ... and the plan moves on
+    moving = [f for f in dense if f.ego.speed_mps > 1.0]
+    assert all(tuple(f.target_point_xy_m) != tps[0] for f in moving)
+    with pytest.raises(UserError, match="target point form"):
+        World(WorldConfig(town_net_path("grid_small"), 0, "sunny", "normal", target_point="x"))
+
+
 def test_same_seed_same_trajectory():
     def run(seed):
         cfg = WorldConfig(

@@ -194,3 +194,43 @@ def test_a_minor_turn_with_an_internal_waiting_point_waits_inside():
         route.junction_of(":J_0_0") == "J"
         and route.junction_of(":cluster_1_2_5_0") == "cluster_1_2"
     )
+
+
+class TwoLaneNet(ToyNet):
+    """ToyNet with a second car lane A_1 (y = 3.2) and a sidewalk A_2 (y = 6) on edge A."""
+
+    def __init__(self):
+        super().__init__()
+        self.lanes["A_1"] = _lane((0, 3.2), (100, 3.2))
+        self.lanes["A_2"] = _lane((0, 6.0), (100, 6.0))
+
+    def allowed(self, lane_id):
+        return ("pedestrian",) if lane_id == "A_2" else ("passenger",)
+
+    def lane_count(self, edge_id):
+        return 3 if edge_id == "A" else 1
+
+
+def test_sparse_plan_is_the_road_centre_at_junction_exits_entries_and_every_50_m():
+    plan = route.sparse_plan(TwoLaneNet(), ["A", "B"])
+    # A: 100 m, two car lanes (the sidewalk is not a car lane): centre y = 1.6 at 0, 50, 100 m
+    assert [(p.edge_index, p.pos_m) for p in plan] == [
+        (0, 0.0), (0, 50.0), (0, 100.0), (1, 0.0), (1, 50.0), (1, 100.0)
+    ]  # fmt: skip
+    assert [(p.x_m, p.y_m) for p in plan[:3]] == [(0.0, 1.6), (50.0, 1.6), (100.0, 1.6)]
+    assert (plan[3].x_m, plan[3].y_m) == (105.0, 5.0)  # the exit of the left turn
+
+
+def test_next_plan_point_is_the_first_one_not_yet_reached():
+    plan = route.sparse_plan(TwoLaneNet(), ["A", "B"])
+    # on A at 20 m: 0 m is behind, 50 m is 30 m ahead
+    assert route.next_plan_point(plan, 0, 0, 20.0, (20.0, 0.0)) == 1
+    # 45 m: 50 m is less than 7.5 m ahead, reached: the junction entry at 100 m is the target
+    assert route.next_plan_point(plan, 1, 0, 45.0, (45.0, 0.0)) == 2
+    # inside the junction (no lane position) only distance counts: the entry is 2.6 m away,
+    # B's start 7.8 m; 2 m on B's start is reached too (this toy junction is 7 m across)
+    assert route.next_plan_point(plan, 2, 0, None, (100.0, -1.0)) == 3
+    assert route.next_plan_point(plan, 3, 0, None, (102.0, 1.0)) == 4
+    # on B (route index 1) at 10 m: its start is behind; never goes back, keeps the last point
+    assert route.next_plan_point(plan, 3, 1, 10.0, (105.0, 15.0)) == 4
+    assert route.next_plan_point(plan, 0, 5, None, (0.0, 0.0)) == len(plan) - 1

@@ -11,6 +11,7 @@ is the first internal lane of that passage ("" for a link without one).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple, Protocol
 
@@ -21,6 +22,12 @@ PATH_LOOKAHEAD_M = 100.0  # the expert plans over this much of its route
 COMMAND_RANGE_M = 40.0  # a turn command is given from this distance before the junction
 TARGET_AHEAD_M = 30.0  # target point on plain road: this far ahead along the route
 EXIT_INTO_M = 5.0  # target point at a junction: this far into its exit lane
+# The sparse route plan (the paper's / TransFuser's target point): the road's centre at every
+# junction entry and exit of the route and every ROUTE_SPACING_M between them; the target is the
+# next plan point more than ROUTE_REACHED_M ahead (TransFuser's route planner: 50 m, 7.5 m).
+ROUTE_SPACING_M = 50.0
+ROUTE_REACHED_M = 7.5
+TARGET_FORMS = ("sparse", "dense")
 
 LIGHT_STATES = {"r": "red", "u": "red", "y": "yellow", "Y": "yellow", "G": "green", "g": "green"}
 COMMANDS_BY_DIRECTION = {
@@ -331,6 +338,61 @@ def command_and_target(
                 return cmd, exit_point(net, link.lane_id), sticky
             from_lane = link.lane_id
     return "follow", point_along(pts, s, TARGET_AHEAD_M), sticky
+
+
+class PlanPoint(NamedTuple):
+    """A point of the sparse route plan: world x, y (m), the index of its route edge and its
+    distance along that edge's lanes (m, lane-length units)."""
+
+    x_m: float
+    y_m: float
+    edge_index: int
+    pos_m: float
+
+
+def sparse_plan(net: RoadNet, edges: Sequence[str]) -> tuple[PlanPoint, ...]:
+    """The route as sparse points: per edge its start (a junction exit), every ROUTE_SPACING_M
+    and its end (a junction entry), each the mean over the edge's car lanes, so that the point
+    says where the route goes, not which lane the car takes."""
+    out = []
+    for i, edge in enumerate(edges):
+        lanes = [
+            net.lane(f"{edge}_{k}")
+            for k in range(net.lane_count(edge))
+            if "passenger" in net.allowed(f"{edge}_{k}")
+        ]
+        if not lanes:
+            continue
+        length = min(lane.length_m for lane in lanes)
+        n = max(1, int(round(length / ROUTE_SPACING_M)))
+        for pos in np.linspace(0.0, length, n + 1):
+            xy = np.mean([cut(lane, float(pos))[0] for lane in lanes], axis=0)
+            out.append(PlanPoint(float(xy[0]), float(xy[1]), i, float(pos)))
+    return tuple(out)
+
+
+def next_plan_point(
+    plan: Sequence[PlanPoint],
+    k: int,
+    route_index: int,
+    lane_pos_m: float | None,
+    front_xy_m: tuple[float, float],
+) -> int:
+    """Index of the target in `plan`, from the previous one `k`: points of edges behind the
+    ego's (`route_index`), points on its edge less than ROUTE_REACHED_M ahead of `lane_pos_m`
+    (None inside a junction) and points within ROUTE_REACHED_M of its front are reached; the
+    last point is kept."""
+    while k < len(plan) - 1:
+        p = plan[k]
+        reached = p.edge_index < route_index or (
+            math.hypot(p.x_m - front_xy_m[0], p.y_m - front_xy_m[1]) < ROUTE_REACHED_M
+        )
+        if lane_pos_m is not None and p.edge_index == route_index:
+            reached = reached or p.pos_m < lane_pos_m + ROUTE_REACHED_M
+        if not reached:
+            break
+        k += 1
+    return k
 
 
 def point_along(pts: np.ndarray, s: np.ndarray, dist_m: float) -> tuple[float, float]:

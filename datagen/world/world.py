@@ -113,6 +113,10 @@ class WorldConfig:
         ego_route: the ego's route as edge ids (tests, replays); None = a random route.
         ego_driver: who drives the ego: "expert" (the rule-based expert, SUMO's safety model
             under it) or "external" (a controller places it every step: `World.step(EgoCommand)`).
+        target_point: the form of FrameState.target_point_xy_m (route.TARGET_FORMS): "sparse",
+            the next point of the sparse route plan (Sec. III-A's route goal, as TransFuser's:
+            junction entries and exits and every 50 m, lane-independent), or "dense", a point
+            30 m ahead along the ego's lane path (5 m into the exit lane near a junction).
     """
 
     net_path: Path
@@ -126,6 +130,7 @@ class WorldConfig:
     warmup_s: float = WARMUP_S
     ego_route: tuple[str, ...] | None = None
     ego_driver: str = "expert"
+    target_point: str = "sparse"
 
 
 EGO_DRIVERS = ("expert", "external")
@@ -224,6 +229,11 @@ class World:
             raise UserError(
                 f"unknown ego driver {config.ego_driver!r}; expected one of {EGO_DRIVERS}"
             )
+        if config.target_point not in route.TARGET_FORMS:
+            raise UserError(
+                f"unknown target point form {config.target_point!r}; "
+                f"expected one of {route.TARGET_FORMS}"
+            )
         from datagen.towns import check_network
 
         check_network(config.net_path)  # a clear UserError before SUMO sees a bad file
@@ -244,6 +254,8 @@ class World:
         self._stop_wait_s = 0.0
         self._standing_s = 0.0
         self._sticky: route.Sticky | None = None  # the junction a turn command was given for
+        self._plan: tuple[route.PlanPoint, ...] = ()  # the sparse route plan (target_point)
+        self._plan_k = 0  # index of the current target in it
         self._plan_i = 0  # externally driven: index in self._route of the ego's edge
         self._ego_collisions: tuple[tuple[str, str, str], ...] = ()
         self._entered_on_red = False
@@ -373,6 +385,8 @@ class World:
         """Cache the ego's route and the length of each of its suffixes."""
         self._route = tuple(edges)
         self._route_suffix = route.route_suffix_m(self._net, self._route)
+        if self.config.target_point == "sparse":  # an extension keeps the plan's prefix
+            self._plan = route.sparse_plan(self._net, self._route)
 
     def _remaining_route(self) -> float:
         """Distance from the ego's front to the end of its route, m."""
@@ -641,6 +655,14 @@ class World:
         command, target, self._sticky = route.command_and_target(
             self._net, ego_r.lane_id, self._path, snap.links, self._sticky
         )
+        if self._plan:  # the sparse form (WorldConfig.target_point)
+            i = self._route_index()
+            on_edge = i < len(self._route) and ego_r.road_id == self._route[i]
+            self._plan_k = route.next_plan_point(
+                self._plan, self._plan_k, i, ego_r.lane_pos_m if on_edge else None, ego_r.front_xy_m
+            )
+            p = self._plan[self._plan_k]
+            target = (p.x_m, p.y_m)
         sig = self._signals
         light, light_d = sig.light, sig.light_distance_m
         if light_d is None or light_d > SIGNAL_RANGE_M:
