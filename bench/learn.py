@@ -122,6 +122,9 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=ROOT / "runs" / "learn-data")
     parser.add_argument("--frames", type=int, default=2880, help="frames to build (<= 20k)")
     parser.add_argument("--seed", type=int, default=21)
+    parser.add_argument(
+        "--episode-seconds", type=float, default=None, help="per episode (datagen's default)"
+    )
     parser.add_argument("--val-town", default="arterial")
     parser.add_argument("--epochs", type=int, default=6)
     parser.add_argument("--workers", type=int, default=2, help="build processes")
@@ -138,6 +141,8 @@ def main() -> None:
         if not (args.reuse and _built(args.data)):
             build = ["datagen.cli", "build", "--towns", "8", "--frames", str(args.frames)]
             build += ["--seed", str(args.seed), "--workers", str(args.workers), "--force"]
+            if args.episode_seconds is not None:  # shorter episodes: more towns x weathers
+                build += ["--episode-seconds", str(args.episode_seconds)]
             _run([*build, "--out", str(args.data), "--no-progress"])
         fit = ["training.cli", "fit", "--shards", str(args.data), "--config", "tiny"]
         fit += ["--epochs", str(args.epochs), "--val-towns", args.val_town, "--out", str(run)]

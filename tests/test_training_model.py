@@ -1,4 +1,5 @@
 import dataclasses
+import math
 
 import pytest
 import torch
@@ -117,3 +118,14 @@ def test_loss_falls_when_overfitting_a_few_frames(tmp_path_factory):
     assert last["total"] < 0.3 * first["total"]
     for term in ("wp", "heat", "reg", "bev", "tf", "weather"):
         assert last[term] < first[term], term
+
+
+def test_red_light_and_stop_sign_positives_weigh_traffic_pos_weight(tmp_path_factory):
+    batch = _batch(tmp_path_factory, n=2)
+    out = {"planning": batch["waypoints"], "traffic": torch.zeros(2, 2)}  # p = 0.5 everywhere
+    batch = {**batch, "traffic": torch.tensor([[1.0, 0.0], [0.0, 1.0]])}
+    for w in ((1.0, 1.0), (3.0, 5.0)):
+        losses = compute_losses(out, batch, TrainConfig(traffic_pos_weight=w))
+        # one positive and one negative per column: (w log 2 + log 2) / 2
+        for term, wi in zip(("light", "stop"), w):
+            assert losses[term].item() == pytest.approx((wi + 1) / 2 * math.log(2))

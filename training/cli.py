@@ -160,7 +160,9 @@ the loss weights lambda/alpha/beta/gamma/delta are ours. AdamW at 1e-4 is TransF
 (Prakash et al. 2021), the paper's closest baseline; weight decay 0.01 is AdamW's usual
 default; batch 32, 30 epochs, the warm-up + cosine schedule and the loss weights (planning
 1.0, detection 0.2, BEV 0.2, traffic 0.1, weather 0.1) are our choice, the weights set so
-that planning dominates as Sec. III-C wishes. The tiny preset's values (lr 1e-3, batch 8,
+that planning dominates as Sec. III-C wishes; the BEV class weights (1, 1, 3: lane markings
+are thin) and the red-light / stop-sign positive weights (3, 3: both are the minority) are
+ours too. The tiny preset's values (lr 1e-3, batch 8,
 R = 64) are ours, for CPUs; bench/learn.py measures what they learn on a held-out town.
 TransFuser's fusion depth (8 blocks, 4 heads per layer) fills in what the paper leaves out.
 """

@@ -6,7 +6,8 @@
 L_wp: L1 between predicted and expert waypoints. L_heat: CenterNet's penalty-reduced focal loss
 (a cross-entropy that down-weights easy negatives and pixels near a centre), L_reg: smooth L1 at
 object centres. L_M: cross-entropy with class weights (`TrainConfig.bev_class_weights`, thin
-lane markings weigh more). L_wc: cross-entropy. L_light, L_sign: binary cross-entropy. A head switched
+lane markings weigh more). L_wc: cross-entropy. L_light, L_sign: binary cross-entropy, positives weighted by
+`TrainConfig.traffic_pos_weight` (red lights and stop signs are the minority). A head switched
 off (an ablation) has no output, so its term is absent from the sum. Every term is computed in
 float32, also under bf16 autocast.
 """
@@ -91,9 +92,11 @@ def compute_losses(
         terms["bev"] = F.cross_entropy(out["bev"].float(), batch["bev"].long(), weight=weight)
         total = total + cfg.lambda_m * terms["bev"]
     if "traffic" in out:
-        logits = out["traffic"].float()
-        terms["light"] = F.binary_cross_entropy_with_logits(logits[:, 0], batch["traffic"][:, 0])
-        terms["stop"] = F.binary_cross_entropy_with_logits(logits[:, 1], batch["traffic"][:, 1])
+        logits, truth = out["traffic"].float(), batch["traffic"]
+        pos = torch.tensor(cfg.traffic_pos_weight, device=logits.device)
+        bce = F.binary_cross_entropy_with_logits
+        terms["light"] = bce(logits[:, 0], truth[:, 0], pos_weight=pos[0])
+        terms["stop"] = bce(logits[:, 1], truth[:, 1], pos_weight=pos[1])
         terms["tf"] = cfg.gamma * terms["light"] + cfg.delta * terms["stop"]
         total = total + cfg.lambda_tf * terms["tf"]
     if "weather" in out:
