@@ -1,7 +1,7 @@
 """`datagen validate DIR`: check a dataset shard by shard, and against its manifest.
 
-    datagen validate data/            # every shard under data/, and data/_manifest.json
-    datagen validate data/town/x.parquet
+    datagen validate data/shards      # every shard under it, and data/shards/_manifest.json
+    datagen validate data/shards/grid_small/grid_small-0-0000.parquet   # one shard
 
 Per shard: a readable Parquet file of the v1 schema version (schemas.check_version), every row
 group passing schemas.validate, one episode per file named by its file and directory, frames
@@ -183,7 +183,9 @@ def validate_dir(root: Path, workers: int = 1) -> tuple[list[ShardReport], list[
 def check_manifest(root: Path, reports: list[ShardReport]) -> list[str]:
     path = root / MANIFEST
     if not path.exists():
-        return [f"{MANIFEST}: missing (not a directory written by datagen build?)"]
+        inner = sorted(p.parent for p in root.glob(f"*/{MANIFEST}"))
+        hint = f"; datagen build wrote {inner[0]}: validate that" if len(inner) == 1 else ""
+        return [f"{MANIFEST}: missing (not a directory written by datagen build?){hint}"]
     try:
         manifest = json.loads(path.read_text())
         episodes = manifest["episodes"]

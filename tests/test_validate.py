@@ -43,6 +43,15 @@ def test_a_built_dataset_validates(dataset, capsys):
     assert out.startswith("ok: ") and "32 frames" in out
 
 
+def test_the_parent_of_a_build_names_the_build_to_validate(copy, capsys):
+    status, _, err = run(copy.parent, capsys)  # like `datagen validate data` for data/shards
+    assert status == 1
+    assert [e for e in err if "_manifest.json: missing" in e] == [
+        f"_manifest.json: missing (not a directory written by datagen build?); "
+        f"datagen build wrote {copy}: validate that"
+    ]
+
+
 def test_a_corrupt_shard_is_one_line_and_fails(copy, capsys):
     path = first_shard(copy)
     data = bytearray(path.read_bytes())
