@@ -3,6 +3,7 @@
     drive routes --standard                                        # the benchmark route files
     drive eval --policy ckpt:runs/demo/last.pt --routes drive/routes/heldout_short.json \\
         --workers 2 --out runs/eval_heldout
+    drive swap --policy ckpt:runs/demo/last.pt --town downtown --out runs/swap   # Fig. 6
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from datagen.errors import UserError
 
 
 def main(argv: list[str] | None = None) -> int:
-    from drive import evaluate, routes
+    from drive import evaluate, routes, swap
 
     p = argparse.ArgumentParser(prog="drive", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -42,6 +43,8 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument(
         "--baseline", type=Path, default=None, help="an expert run's --out: traffic delay vs it"
     )
+    w = sub.add_parser("swap", help="one scene in two weathers: what the model plans (Fig. 6)")
+    swap.add_arguments(w)
     args = p.parse_args(argv)
     try:
         from training.errors import UserError as TrainError
@@ -50,6 +53,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "routes":
             return routes.run(args)
+        if args.command == "swap":
+            return swap.run(args)
         return evaluate.run(args)
     except (UserError, TrainError) as e:
         print(f"drive: error: {str(e).splitlines()[0] if str(e) else e!r}", file=sys.stderr)

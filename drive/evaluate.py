@@ -21,14 +21,12 @@ from __future__ import annotations
 import json
 import os
 import time
-from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-from datagen.episode import HISTORY  # past LiDAR sweeps in the BEV: t-1, t-2
 from datagen.errors import UserError
 from datagen.world import TELEPORT_S
 from drive import score
@@ -78,15 +76,13 @@ def drive_route(
     `world_options` overrides WorldConfig fields (n_vehicles, n_pedestrians, warmup_s).
     `max_sim_s` stops the route after that much simulated time (bench/drive.py), unscored.
     """
-    from datagen import lidar
     from datagen.episode import SensorConfig, Sensors, episode_rng
     from datagen.scene import load_static_scene
     from drive.geometry import route_geometry
     from drive.infractions import InfractionTracker
     from drive.layout import Layout
     from drive.policy import ModelPolicy
-    from drive.sim import DrivenWorld
-    from schemas import codecs
+    from drive.sim import DrivenWorld, SensorStream
 
     t0 = time.perf_counter()
     route, spec = task.route, task.policy
@@ -107,7 +103,10 @@ def drive_route(
         model = _MODELS[key]
     need_sensors = model is not None or task.record
     sensors = (
-        Sensors(static, sensor_cfg, route.weather, episode_rng(route.seed))
+        SensorStream(
+            Sensors(static, sensor_cfg, route.weather, episode_rng(route.seed)),
+            sensor_cfg.jpeg_quality,
+        )
         if need_sensors
         else None
     )
@@ -127,7 +126,6 @@ def drive_route(
         timing["setup"] = time.perf_counter() - t0  # the world's start-up (warm-up) included
         vehicle = VehicleState(frame.ego.pose, frame.ego.speed_mps)
         controller = Controller()
-        sweeps: deque = deque(maxlen=HISTORY + 1)
         plan: Plan | None = None
         waypoints = None
         steps_per_plan = round(PLAN_PERIOD_S / STEP_S)
@@ -147,15 +145,7 @@ def drive_route(
                 t = time.perf_counter()
                 image_jpeg = lidar_png = ground_png = None
                 if sensors is not None:
-                    scene = sensors.scene(frame)
-                    sweeps.appendleft(sensors.sweep(scene, frame))  # [t, t-1, t-2]
-                    # until the history is full, the oldest sweep stands in for the missing ones
-                    hist = list(sweeps) + [sweeps[-1]] * (HISTORY + 1 - len(sweeps))
-                    counts = sensors.lidar_counts(hist)
-                    image = sensors.image(scene, frame)
-                    image_jpeg = codecs.encode_image(image, sensor_cfg.jpeg_quality)
-                    lidar_png = codecs.encode_lidar_bev(lidar.lidar_bev_channels(counts))
-                    ground_png = codecs.encode_lidar_ground(lidar.ground_channel(counts))
+                    image_jpeg, lidar_png, ground_png = sensors.encode(frame)
                 timing["sensors"] += time.perf_counter() - t
                 t = time.perf_counter()
                 if planner is not None:

@@ -5,10 +5,12 @@ WorldConfig.ego_driver): the route's edges are the ego's route (never extended),
 weather and behaviour are the world's. Externally driven, the ego is placed every step where the
 controller put it (`World.step(EgoCommand)`: moveToXY anywhere, off its lane or the road too,
 its speed known to SUMO, its SUMO route kept on the plan so others give way at junctions).
+`SensorStream` encodes what a model policy sees at each 2 Hz instant.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from pathlib import Path
 
 from datagen.state import FrameState, Pose
@@ -75,3 +77,33 @@ class DrivenWorld:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class SensorStream:
+    """The sensors of one drive at consecutive 2 Hz instants, encoded as the shards hold them
+    (datagen.episode.Sensors; the LiDAR BEV history t, t-1, t-2, its oldest sweep standing in
+    for missing ones until it is full), so a model sees what it was trained on."""
+
+    def __init__(self, sensors, jpeg_quality: int):
+        from datagen.episode import HISTORY
+
+        self.sensors = sensors
+        self.jpeg_quality = jpeg_quality
+        self._sweeps: deque = deque(maxlen=HISTORY + 1)
+
+    def encode(self, frame: FrameState) -> tuple[bytes, bytes, bytes]:
+        """(camera JPEG, LiDAR BEV PNG, current ground-hits PNG) of `frame`; call once per
+        instant, in order."""
+        from datagen import lidar
+        from schemas import codecs
+
+        sense = self.sensors
+        scene = sense.scene(frame)
+        self._sweeps.appendleft(sense.sweep(scene, frame))  # [t, t-1, t-2]
+        hist = list(self._sweeps) + [self._sweeps[-1]] * (self._sweeps.maxlen - len(self._sweeps))
+        counts = sense.lidar_counts(hist)
+        return (
+            codecs.encode_image(sense.image(scene, frame), self.jpeg_quality),
+            codecs.encode_lidar_bev(lidar.lidar_bev_channels(counts)),
+            codecs.encode_lidar_ground(lidar.ground_channel(counts)),
+        )
