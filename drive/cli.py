@@ -41,6 +41,13 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--net", type=Path, default=None, help="the network of a --net route file")
     e.add_argument("--limit", type=int, default=0, help="drive only the first N routes")
     e.add_argument(
+        "--max-sim-s",
+        type=float,
+        default=None,
+        help="stop each route after this many simulated seconds, scored as far as it got "
+        "(smoke runs; ends 'max_sim_s')",
+    )
+    e.add_argument(
         "--baseline", type=Path, default=None, help="an expert run's --out: traffic delay vs it"
     )
     w = sub.add_parser("swap", help="one scene in two weathers: what the model plans (Fig. 6)")

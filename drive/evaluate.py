@@ -52,6 +52,7 @@ class Task:
     out_dir: str
     record: bool
     net_override: str | None = None
+    max_sim_s: float | None = None  # stop after this much simulated time (smoke runs)
 
 
 def _write_json(path: Path, doc: dict) -> None:
@@ -74,7 +75,8 @@ def drive_route(
     For scripted tests: `planner(frame) -> (4, 2)` ego-frame waypoints replaces the policy,
     `on_start()` runs once the world has started (e.g. to park a car with libsumo), and
     `world_options` overrides WorldConfig fields (n_vehicles, n_pedestrians, warmup_s).
-    `max_sim_s` stops the route after that much simulated time (bench/drive.py), unscored.
+    `max_sim_s` stops the route after that much simulated time (bench/drive.py, smoke runs);
+    it is scored as far as it got and ends "max_sim_s".
     """
     from datagen.episode import SensorConfig, Sensors, episode_rng
     from datagen.scene import load_static_scene
@@ -222,7 +224,7 @@ def route_score(doc: dict) -> score.RouteScore:
 def route_task(task: Task, progress: Callable[[int], None]) -> dict:
     """The executors' task function: one route; `progress(0)` at every plan (the watchdog's
     heartbeat), `progress(1)` when done."""
-    doc = drive_route(task, progress=progress)
+    doc = drive_route(task, progress=progress, max_sim_s=task.max_sim_s)
     progress(1)
     return doc
 
@@ -234,7 +236,7 @@ def execute(
     command), serially in this process with one process worker; results as routes finish."""
     if workers <= 1 and executor == "process":
         for t in tasks:
-            yield drive_route(t)
+            yield drive_route(t, max_sim_s=t.max_sim_s)
         return
     from datagen import executors
 
@@ -304,6 +306,9 @@ def run(args) -> int:
         raise UserError(f"--workers must be >= 1, got {args.workers}")
     if args.record < 0:
         raise UserError(f"--record must be >= 0, got {args.record}")
+    max_sim = getattr(args, "max_sim_s", None)
+    if max_sim is not None and max_sim <= 0:
+        raise UserError(f"--max-sim-s must be > 0, got {max_sim}")
     spec = parse_policy(args.policy, args.device)
     name, routes = load_routes(args.routes)
     if args.limit:
@@ -326,7 +331,7 @@ def run(args) -> int:
             raise UserError(f"--baseline {args.baseline}: no routes/*.json results in it")
     out = Path(args.out)
     tasks = [
-        Task(r, spec, str(out), i < args.record, str(args.net) if args.net else None)
+        Task(r, spec, str(out), i < args.record, str(args.net) if args.net else None, max_sim)
         for i, r in enumerate(routes)
     ]
     from tqdm import tqdm

@@ -1,0 +1,237 @@
+"""The paper's experiments as one resumable pipeline of the project's own commands.
+
+    experiment run --preset small --out runs/exp        # ~1 h on 2 CPU cores
+    experiment run --preset paper --out runs/paper --device cuda --nproc 8
+    experiment run --preset small --out runs/exp --until fit-full   # stop after that step
+
+Steps, in order (each a real command; its log in OUT/logs/STEP.log):
+1. build: `datagen build --towns N` into OUT/data; the preset's held-out town (`val_town`) is in
+   the data but never trained on (`train fit --val-towns`), as the paper holds Town05 out;
+2. per variant and seed: `train fit` (the full model and the paper's Table III ablations), then
+   `train eval --split val` (open loop, on the held-out town);
+3. per variant and seed: `drive eval` on the seen-town routes (drive/routes/training_towns.json)
+   and the held-out ones (heldout_short.json, the unseen town `boulevard`);
+4. `train analyze` of the full model (Table II), `drive swap` of the full and the no-weather
+   model (Fig. 6);
+5. OUT/REPORT.md (experiments/report.py), from the JSON files the steps wrote.
+
+A finished step leaves OUT/steps/STEP.json (its command, wall time, the time it finished);
+rerunning the same command skips finished steps, resumes an interrupted `datagen build` (its
+own resume) and an interrupted `train fit` (`--resume` from its last.pt), and redoes the rest.
+The preset is recorded in OUT/experiment.json; rerunning with another preset is refused.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from datagen.errors import UserError
+
+ROOT = Path(__file__).resolve().parents[1]
+ROUTES = ROOT / "drive" / "routes"
+
+# Table III's rows: the flags of `train fit` that make each variant (paper Sec. IV-B). "none" is
+# our reading of the paper's "None" row: planning alone, no auxiliary head, one LiDAR sweep.
+VARIANTS = {
+    "full": (),
+    "no_multiframe": ("--single-frame-lidar",),
+    "no_detection": ("--no-detection",),
+    "no_bev": ("--no-bev",),
+    "no_traffic": ("--no-traffic",),
+    "no_weather": ("--no-weather",),
+    "none": ("--no-detection", "--no-bev", "--no-traffic", "--no-weather", "--single-frame-lidar"),
+}
+
+
+@dataclass(frozen=True)
+class Preset:
+    """How big an experiment is.
+
+    Attributes:
+        towns, frames, episode_seconds: the build (`datagen build`).
+        val_town: the town held out of training (open-loop evaluation).
+        config, epochs: `train fit --config/--epochs`.
+        variants: keys of VARIANTS; seeds: training seeds per variant.
+        seen_routes, heldout_routes: routes driven per route file (0 = all).
+        max_sim_s: stop each route after this much simulated time (None = the full route).
+        swap_frames: frames of the weather swap; analyze_frames: of Table II.
+    """
+
+    towns: int
+    frames: int
+    episode_seconds: float
+    val_town: str
+    config: str
+    epochs: int
+    variants: tuple[str, ...]
+    seeds: tuple[int, ...]
+    seen_routes: int
+    heldout_routes: int
+    max_sim_s: float | None
+    swap_frames: int
+    analyze_frames: int
+    workers: int = field(default=2)
+
+
+PRESETS = {
+    # The test suite's: every step and every table of the report, in about two minutes.
+    "minute": Preset(
+        2, 40, 10.0, "downtown", "tiny", 1, ("full", "no_weather"), (0,), 1, 1, 8.0, 3, 16
+    ),  # fmt: skip
+    # A 2-core CPU machine in about an hour: the tiny model, one seed, short routes.
+    "small": Preset(
+        8, 4000, 45.0, "arterial", "tiny", 2, tuple(VARIANTS), (0,), 4, 4, None, 60, 256
+    ),  # fmt: skip
+    # The paper's scale: 146k frames, the paper model, three seeds; a GPU machine (--nproc).
+    "paper": Preset(
+        8, 146000, 180.0, "arterial", "paper", 30, tuple(VARIANTS), (0, 1, 2), 0, 0, None, 240, 1024
+    ),  # fmt: skip
+}
+
+
+@dataclass(frozen=True)
+class Step:
+    """One command of the pipeline: its name, argv (python -m ...), and the file it leaves."""
+
+    name: str
+    argv: tuple[str, ...]
+    output: str  # relative to OUT; the step's result (checked to exist after it ran)
+    resume: tuple[str, ...] = ()  # extra argv when an interrupted run is continued
+    epochs: int | None = None  # a fit: its output is complete once it holds this many epochs
+
+
+def _fit_epochs(ckpt: Path) -> int:
+    """Epochs a `train fit` checkpoint has finished."""
+    from training.checkpoint import load_checkpoint
+
+    return int(load_checkpoint(ckpt).get("epoch", 0))
+
+
+def run_name(variant: str, seed: int) -> str:
+    return f"{variant}-s{seed}"
+
+
+def steps(p: Preset, out: Path, device: str, nproc: int) -> list[Step]:
+    """Every step of preset `p` writing under `out`, in order."""
+    data = str(out / "data")
+    py = ("datagen.cli", "build", "--towns", str(p.towns), "--frames", str(p.frames))
+    build = py + ("--episode-seconds", f"{p.episode_seconds:g}", "--workers", str(p.workers))
+    result = [Step("build", build + ("--out", data, "--no-progress"), "data/_manifest.json")]
+    for variant in p.variants:
+        for seed in p.seeds:
+            name = run_name(variant, seed)
+            run = out / "runs" / name
+            fit = ("training.cli", "fit", "--shards", data, "--config", p.config, "--out", str(run))
+            fit += ("--epochs", str(p.epochs), "--val-towns", p.val_town, "--seed", str(seed))
+            fit += ("--device", device, *VARIANTS[variant])
+            if nproc > 1:
+                fit = ("torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}",
+                       "-m", *fit)  # fmt: skip
+            ckpt = str(run / "last.pt")
+            fit_step = Step(f"fit-{name}", fit, f"runs/{name}/last.pt", ("--resume",), p.epochs)
+            result.append(fit_step)
+            ev = ("training.cli", "eval", "--ckpt", ckpt, "--shards", data, "--split", "val")
+            ev += ("--device", device, "--out", str(run / "eval.json"))
+            result.append(Step(f"eval-{name}", ev, f"runs/{name}/eval.json"))
+            for kind, routes, limit in (
+                ("seen", "training_towns.json", p.seen_routes),
+                ("heldout", "heldout_short.json", p.heldout_routes),
+            ):
+                dr = ("drive.cli", "eval", "--policy", f"ckpt:{ckpt}")
+                dr += ("--routes", str(ROUTES / routes), "--workers", str(p.workers))
+                dr += ("--device", device, "--out", str(out / "drive" / name / kind))
+                dr += ("--limit", str(limit)) if limit else ()
+                dr += ("--max-sim-s", f"{p.max_sim_s:g}") if p.max_sim_s else ()
+                result.append(Step(f"drive-{kind}-{name}", dr, f"drive/{name}/{kind}/summary.json"))
+    first = run_name("full", p.seeds[0])
+    an = ("training.cli", "analyze", "--ckpt", str(out / "runs" / first / "last.pt"))
+    an += ("--shards", data, "--frames", str(p.analyze_frames), "--device", device)
+    result.append(Step("analyze", an + ("--out", str(out / "analyze.json")), "analyze.json"))
+    for variant in ("full", "no_weather"):
+        if variant not in p.variants:
+            continue
+        name = run_name(variant, p.seeds[0])
+        sw = ("drive.cli", "swap", "--policy", f"ckpt:{out / 'runs' / name / 'last.pt'}")
+        sw += ("--frames", str(p.swap_frames), "--device", device)
+        result.append(Step(f"swap-{name}", sw + ("--out", str(out / "swap" / name)),
+                           f"swap/{name}/swap.json"))  # fmt: skip
+    return result
+
+
+def _run_step(step: Step, out: Path, resuming: bool) -> float:
+    log = out / "logs" / f"{step.name}.log"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    argv = [sys.executable, "-m", *step.argv, *(step.resume if resuming else ())]
+    env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    t0 = time.perf_counter()
+    with log.open("a") as f:
+        f.write(f"$ {' '.join(argv)}\n")
+        f.flush()
+        code = subprocess.run(
+            argv, stdout=f, stderr=subprocess.STDOUT, env=env, cwd=ROOT
+        ).returncode
+    if code != 0:
+        tail = log.read_text().strip().splitlines()[-1:] or [""]
+        raise UserError(f"step {step.name} failed (exit {code}): {tail[0]} (log: {log})")
+    if not (out / step.output).exists():
+        raise UserError(f"step {step.name} finished without writing {step.output} (log: {log})")
+    return time.perf_counter() - t0
+
+
+def run(
+    preset_name: str,
+    out: Path,
+    device: str = "cpu",
+    nproc: int = 1,
+    until: str | None = None,
+    echo=print,
+) -> Path | None:
+    """Run (or resume) the pipeline; the report's path, or None when stopped at `until`."""
+    from experiments import report
+
+    if preset_name not in PRESETS:
+        raise UserError(f"unknown preset {preset_name!r}; expected one of {tuple(PRESETS)}")
+    p = PRESETS[preset_name]
+    out.mkdir(parents=True, exist_ok=True)
+    meta_path = out / "experiment.json"
+    config = json.loads(json.dumps(asdict(p)))  # as read back from the file (lists)
+    meta = {"preset": preset_name, "config": config, "device": device, "nproc": nproc}
+    if meta_path.exists():
+        old = json.loads(meta_path.read_text())
+        if old.get("preset") != preset_name or old.get("config") != config:
+            raise UserError(
+                f"{out} holds an experiment of preset {old.get('preset')!r} (its own settings); "
+                "give another --out"
+            )
+    meta_path.write_text(json.dumps(meta, indent=1) + "\n")
+    all_steps = steps(p, out, device, nproc)
+    names = [s.name for s in all_steps]
+    if until is not None and until not in names:
+        raise UserError(f"--until {until!r}: no such step (steps: {', '.join(names)})")
+    for step in all_steps:
+        done = out / "steps" / f"{step.name}.json"
+        if done.exists():
+            echo(f"skip {step.name} (done)")
+        else:
+            resuming = bool(step.resume) and (out / step.output).exists()
+            if resuming and step.epochs and _fit_epochs(out / step.output) >= step.epochs:
+                echo(f"skip {step.name} (its checkpoint holds all {step.epochs} epochs)")
+                wall = 0.0
+            else:
+                echo(f"run  {step.name}" + (" (resuming)" if resuming else ""))
+                wall = _run_step(step, out, resuming)
+            done.parent.mkdir(parents=True, exist_ok=True)
+            record = {"argv": list(step.argv), "wall_s": round(wall, 2), "finished": time.time()}
+            done.write_text(json.dumps(record, indent=1) + "\n")
+        if step.name == until:
+            echo(f"stopped after {until}")
+            return None
+    path = report.write(out, p, preset_name, all_steps)
+    echo(f"wrote {path}")
+    return path
