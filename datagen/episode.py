@@ -48,7 +48,9 @@ state at any distance (was: only the heads showing the ego's governing light wit
 in an ego collision loses its last 5 s of frames (datagen/world/world.py `record`); 6 the expert
 yields to people its body would sweep on a turn and waits out a green too short to clear the
 junction (datagen/world/perception.py `swept_contact`, datagen/expert.py `light_rule`); 7 the
-target point is the next point of the sparse route plan by default (SensorConfig.target_point)."""
+target point is the next point of the sparse route plan by default (SensorConfig.target_point);
+the expert yields to a standing person at the kerb only where its body would cover them, and
+after a stop sign waits at the line while a foe is inside the junction or due within 5 s."""
 
 
 def generator_version() -> str:

@@ -27,7 +27,10 @@ Rules:
                   into the crossing phase got the ego hit (arterial seed 284, "v51 hit ego")
     stop_sign     come to a full stop at the stop line until `stop_done` (world.py holds the
                   stop for `STOP_WAIT_S` and until no other vehicle is inside the junction), then
-                  SUMO's right-of-way model decides when to enter
+                  SUMO's right-of-way model decides when to enter; still at the line, the car
+                  also waits while another vehicle is inside the junction or due within
+                  FOE_GAP_S (SUMO let it enter ahead of a car turning across it: "ego hit v65",
+                  mixed, build seed 0, episode 44)
     route_end     stop at the end of a route that cannot be extended
     junction      keep the junction clear: stop before its entry while something slow or
                   standing (a vehicle, or a person on a crossing, or crossing traffic) inside
@@ -103,6 +106,8 @@ class ExpertInput:
         waits_inside: the ego's link there gives way at a waiting point inside the junction.
         foe_eta_s: soonest arrival of another vehicle at that junction, s; None if none.
         green_left_s: seconds until a green `light` at that junction ends; None if unknown.
+        stop_foe_eta_s: soonest arrival of another vehicle at the stop-controlled junction
+            ahead (0 inside it), s; None if none or no stop ahead.
     """
 
     speed_mps: float
@@ -120,6 +125,7 @@ class ExpertInput:
     waits_inside: bool = False
     foe_eta_s: float | None = None
     green_left_s: float | None = None
+    stop_foe_eta_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -203,8 +209,12 @@ def light_rule(inp: ExpertInput, p: Profile) -> float:
 
 
 def stop_sign_rule(inp: ExpertInput, p: Profile) -> float:
-    if inp.stop_distance_m is None or inp.stop_done:
+    if inp.stop_distance_m is None:
         return math.inf
+    if inp.stop_done:
+        foe = inp.stop_foe_eta_s is not None and inp.stop_foe_eta_s < FOE_GAP_S
+        if not (foe and inp.speed_mps < BLOCKING_MPS and inp.stop_distance_m > 0.0):
+            return math.inf  # the stop is done and no foe is near: SUMO's right of way decides
     return approach_speed(inp.stop_distance_m - STOP_SIGN_MARGIN_M, 0.0, p.ego_comfort_decel_mps2)
 
 

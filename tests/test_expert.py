@@ -122,6 +122,18 @@ def test_slow_car_waits_for_the_next_green_when_this_one_ends_before_it_clears()
     assert at(1.0, 2.0, None).reason == "none"  # green left unknown (no signal read)
 
 
+def test_after_the_stop_the_car_waits_at_the_line_while_a_foe_is_near():
+    def at(eta, speed=0.0, dist=expert.STOP_SIGN_MARGIN_M):
+        inp = ExpertInput(speed, LIMIT, stop_distance_m=dist, stop_done=True, stop_foe_eta_s=eta)
+        return decide(inp, P)
+
+    assert at(2.0) == Decision(0.0, "stop_sign")  # a foe due in 2 s: wait
+    assert at(0.0).reason == "stop_sign"  # one inside the junction
+    assert at(None).reason == "none" and at(expert.FOE_GAP_S + 1.0).reason == "none"
+    assert at(2.0, speed=5.0).reason == "none"  # already going: do not stop in the entry
+    assert at(2.0, dist=-0.5).reason == "none"  # past the line
+
+
 def test_stop_sign_full_stop_then_released():
     d = decide(ExpertInput(0.05, LIMIT, stop_distance_m=expert.STOP_SIGN_MARGIN_M), P)
     assert d == Decision(0.0, "stop_sign")

@@ -428,6 +428,12 @@ FORMER_COLLISIONS = [
     # ... and the ego entering a left turn at 1 m/s 0.2 s before its green ended, still inside
     # when the crossing phase began (before the green-left check): "v51 hit ego" at 127.4 s
     ("arterial", 284, "rainy", "cautious", 130.0),
+    # datagen build --towns 8 --frames 146000 (seed 0), arterial-0-0009: the ego waiting in a
+    # junction for someone at the kerb beside it (who waited for the ego), until "ego hit p145
+    # (crossing)" at 119.3 s; and mixed-0-0044: let in at a stop sign ahead of a car turning
+    # across it, "ego hit v65 (junction)" at 95.0 s
+    ("arterial", 2079518455, "cloudy", "aggressive", 121.0),
+    ("mixed", 1859598460, "sunny", "normal", 97.0),
 ]
 
 

@@ -82,31 +82,32 @@ def _right_turn(radius=6.0):
 
 
 def test_person_standing_at_the_kerb_inside_a_turn_is_swept_by_the_body():
-    # 1.7 m from the front's path at the corner: the front clears them, the car's body (the
+    # 1.3 m from the front's path at the corner: the front clears them, the car's body (the
     # chord from its front back one length, as SUMO's box) cuts the corner and would not
     path = _right_turn()
     c, r = np.array([5.0, -6.0]), 6.0
     diag = np.array([math.sqrt(0.5), math.sqrt(0.5)])
-    inside = _ped(*(c + (r - 1.7) * diag), -math.pi / 4, 0.0, "side_0")
+    inside = _ped(*(c + (r - 1.3) * diag), -math.pi / 4, 0.0, "side_0")
     obs = perception.obstacles([inside], _kerb, True, path, None)
     assert [o.kind for o in obs] == ["pedestrian"] and 2.0 < obs[0].distance_m < 12.0
     outside = _ped(*(c + (r + 1.9) * diag), -math.pi / 4, 0.0, "side_0")
     assert perception.obstacles([outside], _kerb, True, path, None) == []
-    # beside a straight path the body is the front's path: 1.2 m off brushes, 2 m does not
-    assert perception.obstacles([_ped(30.0, 1.2, 0.0, 0.0, "side_0")], _kerb, False, PATH, None)
+    # beside a straight path the body is the front's path: 0.8 m off is under it, 2 m is not
+    assert perception.obstacles([_ped(30.0, 0.8, 0.0, 0.0, "side_0")], _kerb, False, PATH, None)
     assert (
         perception.obstacles([_ped(30.0, 2.0, 0.0, 0.0, "side_0")], _kerb, False, PATH, None) == []
     )
 
 
 def test_swept_contact_is_where_the_front_has_travelled_at_first_touch():
-    far = perception.swept_contact(
-        np.array([[20.0, 1.0], [-2.0, 1.0], [20.0, 3.0]]), np.full(3, 0.3), PATH, 4.7, 0.9
-    )
-    # ahead: the front reaches x = 20 - 0 (the point is 1 m off, within 0.9 + 0.3): u ~ 19.5..20
+    pts = np.array([[20.0, 1.0], [-2.0, 1.0], [-2.0, 1.3], [20.0, 1.3], [20.0, 3.0]])
+    far = perception.swept_contact(pts, np.full(5, 0.25), PATH, 4.7, 0.9, clearance_m=0.3)
+    # ahead, 1 m off (within 0.9 + 0.25): touched when the front is within 0.57 m of x = 20
     assert 19.0 <= far[0] <= 20.0
-    assert far[1] == 0.0  # beside the body now
-    assert far[2] == math.inf  # 3 m off never touches
+    assert far[1] == 0.0  # touching the body now: hold
+    assert far[2] == math.inf  # beside the body within the clearance, left behind: go
+    assert far[0] < far[3] <= 20.0  # ahead within the clearance: held before touching
+    assert far[4] == math.inf  # 3 m off never touches
 
 
 def test_person_on_the_crossing_walking_towards_the_path_is_yielded_to():

@@ -44,14 +44,23 @@ def is_crossing(lane_id: str) -> bool:
 
 
 def swept_contact(
-    xy: np.ndarray, clearance_m: np.ndarray, path: Path, length_m: float, half_width_m: float
+    xy: np.ndarray,
+    radius_m: np.ndarray,
+    path: Path,
+    length_m: float,
+    half_width_m: float,
+    clearance_m: float | np.ndarray = SWEEP_CLEARANCE_M,
 ) -> np.ndarray:
-    """How far the ego's front travels along `path` before its body comes within `clearance_m`
-    (K,) of each point `xy` (K, 2), m; inf where it does not within SWEEP_AHEAD_M.
+    """How far the ego's front travels along `path` before its body touches each point `xy`
+    (K, 2) with radius `radius_m` (K,), or comes within `clearance_m` of it and closer than it
+    is now, m; inf where neither happens within SWEEP_AHEAD_M.
 
     The body at front distance u is the segment from the path point u - `length_m` to the path
     point u, `half_width_m` wide (behind its start the path goes straight back along its first
-    segment). Sampled every SWEEP_STEP_M, the current pose first."""
+    segment). Sampled every SWEEP_STEP_M, the current pose first. "Closer than now": someone
+    already beside the car who is left behind as it moves on does not hold it (measured: a
+    person waiting at the kerb beside the ego's front, the ego waiting for them and they for the
+    ego, until a third walked into it: arterial, build seed 0, episode 9)."""
     pts, s = path.pts, path.s
     u = np.arange(0.0, min(float(s[-1]), SWEEP_AHEAD_M) + 1e-9, SWEEP_STEP_M)
     d0 = pts[1] - pts[0]
@@ -70,7 +79,10 @@ def swept_contact(
     t = np.clip((rel * seg[None]).sum(-1) / l2, 0.0, 1.0)
     off = rel - t[..., None] * seg[None]
     dist = np.sqrt((off * off).sum(-1))  # (K, U)
-    touch = dist < half_width_m + clearance_m[:, None]
+    reach = half_width_m + radius_m[:, None]
+    clear = np.broadcast_to(np.asarray(clearance_m, np.float64), (len(xy),))[:, None]
+    closer = (dist < reach + clear) & (dist < dist[:, :1] - 0.05)
+    touch = (dist < reach) | closer
     first = touch.argmax(1)
     return np.where(touch.any(1), u[first], np.inf)
 
@@ -157,8 +169,15 @@ def obstacles(
                 ok = (lat < half_w + 2.0) & (along > -EGO_DIMS_M[0]) & (along < SWEEP_AHEAD_M)
                 cand = peds[ok]
                 if len(cand):
-                    radius = 0.5 * np.maximum(length[cand], width[cand]) + SWEEP_CLEARANCE_M
-                    reach = swept_contact(xy_a[cand], radius, path, EGO_DIMS_M[0], half_w)
+                    # someone standing at the kerb holds the car only where its body would
+                    # cover where they stand (their centre): a margin there deadlocks with
+                    # SUMO's walkers, who wait for the car (arterial, build seed 0, episode 9)
+                    standing = kerb_a[cand] & (spd_a[cand] < 0.2)
+                    radius = np.where(standing, 0.0, 0.5 * np.maximum(length[cand], width[cand]))
+                    clear = np.where(standing, 0.0, SWEEP_CLEARANCE_M)
+                    reach = swept_contact(
+                        xy_a[cand], radius, path, EGO_DIMS_M[0], half_w, clearance_m=clear
+                    )
                     for i, u in zip(cand, reach):
                         if np.isfinite(u):
                             out.append(expert.Obstacle(float(u), 0.0, "pedestrian", ids[i]))

@@ -359,6 +359,11 @@ class World:
                 route.junction_of(self._snap.links[0].via_lane_id),
                 ego.road_id,
             )
+        stop_foe = None
+        if sig.stop_distance_m is not None and sig.stop_junction and sig.stop_distance_m < 10.0:
+            stop_foe = perception.foe_eta_s(
+                self._snap.agents, self._net, sig.stop_junction, ego.road_id
+            )
         green_left = None
         near = junction is not None and junction[0] < GREEN_CHECK_M
         if near and sig.light == "green" and abs(sig.light_distance_m - junction[0]) < 3.0:
@@ -379,6 +384,7 @@ class World:
             waits_inside=waits_inside,
             foe_eta_s=foe_eta,
             green_left_s=green_left,
+            stop_foe_eta_s=stop_foe,
         )
 
     def _set_route(self, edges: list[str] | tuple[str, ...]) -> None:
