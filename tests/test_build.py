@@ -322,12 +322,15 @@ def test_sigkill_then_rerun_equals_an_uninterrupted_build(tmp_path, reference):
 
 def test_ctrl_c_stops_cleanly_and_the_rerun_finishes(tmp_path, reference):
     out = tmp_path / "out"
-    proc = _spawn_fake_build(out, {"FAKE_FRAME_SECONDS": "0.15"})  # 2.4 s an episode
+    proc = _spawn_fake_build(out, {"FAKE_FRAME_SECONDS": "0.4"})  # 6.4 s an episode
     _wait_for_shards(out, 2, proc)
+    at_stop = len(list(out.glob("*/*.parquet")))
     os.killpg(proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does
-    t0 = time.monotonic()
-    _, stderr = proc.communicate(timeout=30)
-    assert time.monotonic() - t0 < 2.0  # running episodes are stopped, not waited for
+    _, stderr = proc.communicate(timeout=60)
+    # running episodes are stopped, not waited for: the two workers' episodes do not finish
+    # (at most one that was writing its shard at that instant); counted, not timed, so a
+    # loaded machine cannot fail it (a 2 s bound did, twice, in full suites under load)
+    assert len(list(out.glob("*/*.parquet"))) <= at_stop + 1
     assert proc.returncode == 130
     assert "run the same command again to resume" in stderr.decode()
     assert "Traceback" not in stderr.decode()
