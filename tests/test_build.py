@@ -296,6 +296,9 @@ def _spawn_fake_build(out: Path, env_extra: dict, executor: str = "process") -> 
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         start_new_session=True,  # so that the test can signal the whole build
+        # as a terminal's foreground job: a test run started in the background of a script
+        # (`cmd &`) inherits SIGINT ignored, and Ctrl-C would then never reach the build
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
 
 
