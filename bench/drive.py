@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
             spec = PolicySpec(name, device=args.device)
         else:
             spec = PolicySpec("ckpt", str(_checkpoint(name, tmp)), args.device)
-        doc = drive_route(Task(route, spec, str(tmp / name), False), max_sim_s=args.seconds)
+        doc = drive_route(Task(route, spec, str(tmp / name), False, max_sim_s=args.seconds))
         t = doc["timing"]
         sim = max(doc["sim_s"], 1e-6)
         wall = t["total"] - t["setup"]

@@ -67,7 +67,6 @@ def drive_route(
     planner: Callable[[object], np.ndarray] | None = None,
     on_start: Callable[[], None] | None = None,
     world_options: dict | None = None,
-    max_sim_s: float | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> dict:
     """Drive one route; returns (and writes) its result document.
@@ -75,8 +74,8 @@ def drive_route(
     For scripted tests: `planner(frame) -> (4, 2)` ego-frame waypoints replaces the policy,
     `on_start()` runs once the world has started (e.g. to park a car with libsumo), and
     `world_options` overrides WorldConfig fields (n_vehicles, n_pedestrians, warmup_s).
-    `max_sim_s` stops the route after that much simulated time (bench/drive.py, smoke runs);
-    it is scored as far as it got and ends "max_sim_s".
+    `task.max_sim_s` stops the route after that much simulated time (bench/drive.py, smoke
+    runs); it is scored as far as it got and ends "max_sim_s".
     """
     from datagen.episode import SensorConfig, Sensors, episode_rng
     from datagen.scene import load_static_scene
@@ -131,6 +130,7 @@ def drive_route(
         plan: Plan | None = None
         waypoints = None
         steps_per_plan = round(PLAN_PERIOD_S / STEP_S)
+        max_sim_s = task.max_sim_s
         k = 0
         while True:
             t = time.perf_counter()
@@ -224,7 +224,7 @@ def route_score(doc: dict) -> score.RouteScore:
 def route_task(task: Task, progress: Callable[[int], None]) -> dict:
     """The executors' task function: one route; `progress(0)` at every plan (the watchdog's
     heartbeat), `progress(1)` when done."""
-    doc = drive_route(task, progress=progress, max_sim_s=task.max_sim_s)
+    doc = drive_route(task, progress=progress)
     progress(1)
     return doc
 
@@ -236,7 +236,7 @@ def execute(
     command), serially in this process with one process worker; results as routes finish."""
     if workers <= 1 and executor == "process":
         for t in tasks:
-            yield drive_route(t, max_sim_s=t.max_sim_s)
+            yield drive_route(t)
         return
     from datagen import executors
 
@@ -306,7 +306,7 @@ def run(args) -> int:
         raise UserError(f"--workers must be >= 1, got {args.workers}")
     if args.record < 0:
         raise UserError(f"--record must be >= 0, got {args.record}")
-    max_sim = getattr(args, "max_sim_s", None)
+    max_sim = args.max_sim_s
     if max_sim is not None and max_sim <= 0:
         raise UserError(f"--max-sim-s must be > 0, got {max_sim}")
     spec = parse_policy(args.policy, args.device)

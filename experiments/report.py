@@ -49,7 +49,7 @@ def _routes(out: Path, name: str, kind: str) -> list[dict]:
     return [
         json.loads(p.read_text())
         for p in sorted((out / "drive" / name / kind / "routes").glob("*.json"))
-    ]  # noqa: E501
+    ]
 
 
 def closed_loop(out: Path, preset, kind: str) -> dict[str, Summary]:

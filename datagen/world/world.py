@@ -87,6 +87,7 @@ AGENT_RADIUS_M = 100.0  # agents within this distance of the ego are in FrameSta
 BLOCKED_S = 80.0  # ego standing this long (not at a red light) ends the episode ("blocked")
 WARMUP_S = 10.0  # traffic runs this long before the ego is inserted
 GREEN_CHECK_M = 30.0  # within this of a signalled junction the expert reads the green left
+STOP_FOE_CHECK_M = 10.0  # within this of a stop line the expert reads its junction's foes
 # record() drops the frames of the last 5 s before an ego collision: more than the 2 s of future
 # waypoints a frame is labelled with plus ~3 s of approach, so no frame shows driving into it.
 COLLISION_DROP_S = 5.0
@@ -360,7 +361,8 @@ class World:
                 ego.road_id,
             )
         stop_foe = None
-        if sig.stop_distance_m is not None and sig.stop_junction and sig.stop_distance_m < 10.0:
+        stop_d = sig.stop_distance_m
+        if stop_d is not None and sig.stop_junction and stop_d < STOP_FOE_CHECK_M:
             stop_foe = perception.foe_eta_s(
                 self._snap.agents, self._net, sig.stop_junction, ego.road_id
             )
