@@ -38,7 +38,7 @@ HISTORY = 2  # past sweeps in the LiDAR BEV (t-1, t-2)
 FUTURE = labels.FUTURE_FRAMES  # 4 future states for +2.0 s waypoints
 STAGES = ("sim", "scene", "lidar", "camera", "labels", "encode")
 
-DATA_VERSION = 7
+DATA_VERSION = 8
 """What the generator writes, beyond the scene (bump it with every change of shard bytes for the
 same seed; tests/test_identical.py pins them; data/README.md lists the changes):
 1 the first release; 2 PNG columns encoded with no/UP row filter + RLE (same decoded arrays);
@@ -50,7 +50,10 @@ yields to people its body would sweep on a turn and waits out a green too short 
 junction (datagen/world/perception.py `swept_contact`, datagen/expert.py `light_rule`); 7 the
 target point is the next point of the sparse route plan by default (SensorConfig.target_point);
 the expert yields to a standing person at the kerb only where its body would cover them, and
-after a stop sign waits at the line while a foe is inside the junction or due within 5 s."""
+after a stop sign waits at the line while a foe is inside the junction or due within 5 s; 8 the
+expert brakes harder than its vType decel when that cannot stop it short of a car or person on
+its path (`expert.emergency_brake_mps2`), and counts a car standing at a stop line across a
+junction as a foe before beginning a turn that waits inside it."""
 
 
 def generator_version() -> str:

@@ -8,8 +8,12 @@ within `distance` at the profile's comfortable deceleration b,
 
     v = sqrt(v_end^2 + 2 b distance)                                   (approach_speed)
 
-so following the target never asks for more than b. Harder braking only ever comes from SUMO's
-own safety checks, which the ego keeps on (speed mode 31, see world.py) to avoid collisions.
+so following the target never asks for more than b. Braking harder is for emergencies only:
+`Decision.brake_mps2` is the deceleration needed to stop EMERGENCY_GAP_M short of a vehicle or
+person on the path (to match its speed there), when that is more than the vType's decel lets
+SUMO brake for a command (at most the profile's emergency deceleration). A car cutting in close
+ahead is such a case: braking at decel only, the ego hit it (arterial, build seed 21, episode 5,
+"ego hit v40"). SUMO's own safety checks stay on besides (see world.py).
 
 Rules:
     none          cruise at lane limit x profile speed factor
@@ -36,7 +40,8 @@ Rules:
                   standing (a vehicle, or a person on a crossing, or crossing traffic) inside
                   it or beyond its exit leaves no room for the whole car past the exit, or
                   while a foe vehicle is within FOE_GAP_S of a junction where the ego's turn
-                  would give way inside it; unless the car can no longer stop before the
+                  would give way inside it (one standing at a stop line into it counts: it
+                  may start at any moment, perception.foe_eta_s); unless the car can no longer stop before the
                   entry (then it goes on); also reported
                   by world.py when SUMO's right-of-way model holds the ego back
 """
@@ -65,6 +70,7 @@ FOE_GAP_S = 5.0
 # green left plus the shortest yellow (SUMO's tls default: 3 s); see light_rule.
 CLEAR_SPEED_MPS = 4.0
 YELLOW_S = 3.0
+EMERGENCY_GAP_M = 1.0  # emergency braking stops this short of a vehicle or person on the path
 
 
 @dataclass(frozen=True)
@@ -130,10 +136,12 @@ class ExpertInput:
 
 @dataclass(frozen=True)
 class Decision:
-    """The expert's command: target speed (m/s) and the binding rule (schemas.EXPERT_REASONS)."""
+    """The expert's command: target speed (m/s), the binding rule (schemas.EXPERT_REASONS) and
+    the braking an emergency needs (m/s^2; 0 when braking at the vType's decel suffices)."""
 
     target_speed_mps: float
     reason: str
+    brake_mps2: float = 0.0
 
 
 def approach_speed(distance_m: float, v_end_mps: float, decel_mps2: float) -> float:
@@ -255,8 +263,26 @@ RULES = (
 )
 
 
-def decide(inp: ExpertInput, p: Profile) -> Decision:
-    """Target speed and reason: the minimum over the rules' caps (see module docstring)."""
+def emergency_brake_mps2(inp: ExpertInput, p: Profile, decel_mps2: float) -> float:
+    """Deceleration (m/s^2) that slows the ego to each obstacle's speed EMERGENCY_GAP_M short of
+    it, the highest over the obstacles, capped at the profile's emergency deceleration; 0 when
+    `decel_mps2` (what SUMO allows a command) suffices. Treating the obstacle as standing where
+    it is now errs on the safe side."""
+    v = inp.speed_mps
+    need = 0.0
+    for o in inp.obstacles:
+        v_o = max(0.0, o.speed_mps)
+        if v_o >= v:
+            continue
+        room = max(o.distance_m - EMERGENCY_GAP_M, 0.1)
+        need = max(need, (v * v - v_o * v_o) / (2.0 * room))
+    return min(need, p.emergency_decel_mps2) if need > decel_mps2 else 0.0
+
+
+def decide(inp: ExpertInput, p: Profile, decel_mps2: float = math.inf) -> Decision:
+    """Target speed and reason: the minimum over the rules' caps, and the emergency braking
+    beyond `decel_mps2` (the vType's decel; inf: none) that the obstacles need (module
+    docstring)."""
     target, reason = cruise_rule(inp, p), "none"
     if inp.speed_mps > target + 0.5:
         reason = "speed_limit"  # above the (profile-scaled) limit now: slowing to it
@@ -267,4 +293,4 @@ def decide(inp: ExpertInput, p: Profile) -> Decision:
     # Below walking pace towards a stop point, snap to 0 so the car really stands still.
     if target < 0.3 and reason in ("red_light", "stop_sign", "pedestrian", "route_end", "junction"):
         target = 0.0
-    return Decision(max(0.0, target), reason)
+    return Decision(max(0.0, target), reason, emergency_brake_mps2(inp, p, decel_mps2))

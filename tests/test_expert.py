@@ -213,3 +213,23 @@ def test_too_late_to_stop_before_the_junction_it_goes_on():
     queue = (Obstacle(12.0, 0.0, "vehicle"),)
     inp = ExpertInput(14.0, LIMIT, obstacles=queue, junction_entry_m=0.5, junction_exit_m=10.0)
     assert expert.junction_rule(inp, P) == math.inf
+
+
+def test_emergency_brake_only_when_the_vtype_decel_cannot_stop_short_of_a_cut_in():
+    decel = 1.2 * P.ego_comfort_decel_mps2  # what SUMO lets a command brake (world.py)
+    v = 12.0
+    # a car cutting in 15 m ahead, nearly standing: braking at decel needs 144 / 7.2 = 20 m
+    close = ExpertInput(v, LIMIT, obstacles=(Obstacle(15.0, 1.0, "vehicle"),))
+    need = (v * v - 1.0) / (2.0 * (15.0 - expert.EMERGENCY_GAP_M))
+    assert decide(close, P, decel).brake_mps2 == pytest.approx(need)
+    assert decel < need < P.emergency_decel_mps2
+    # far enough for the ordinary braking, or the same car moving away faster: no emergency
+    far = ExpertInput(v, LIMIT, obstacles=(Obstacle(40.0, 1.0, "vehicle"),))
+    assert decide(far, P, decel).brake_mps2 == 0.0
+    away = ExpertInput(v, LIMIT, obstacles=(Obstacle(5.0, 13.0, "vehicle"),))
+    assert decide(away, P, decel).brake_mps2 == 0.0
+    # someone stepping out 3 m ahead: as hard as the car can, no harder
+    ped = ExpertInput(v, LIMIT, obstacles=(Obstacle(3.0, 0.0, "pedestrian"),))
+    assert decide(ped, P, decel).brake_mps2 == P.emergency_decel_mps2
+    # without a decel to compare with (the default), never
+    assert decide(close, P).brake_mps2 == 0.0

@@ -28,9 +28,9 @@ EPISODES = (
     ("grid3-3-0", 3, "sunny", "normal", 5),
     ("grid3-8-1", 8, "rainy", "aggressive", 3),
 )
-EXPECTED_SHA256 = {  # scene v2, data v7, schema 1.1
-    "grid3-3-0": "5575a3a84926f6ffe180ed5756c0dbfc8730277a64e7a265361553223a6c7469",
-    "grid3-8-1": "4764e906d0055346a06e958e918ab16adf3759d2b85886087d55480b4cf42f5f",
+EXPECTED_SHA256 = {  # scene v2, data v8, schema 1.1
+    "grid3-3-0": "a5b0fd4dbda640a957a9bbd6001478152068226f820e5add608f3331ed9725f5",
+    "grid3-8-1": "fde1b43d76290b58271821b70ed30f6bee3e072440e1a8312dfe69847b1a7209",
 }
 
 

@@ -434,6 +434,14 @@ FORMER_COLLISIONS = [
     # across it, "ego hit v65 (junction)" at 95.0 s
     ("arterial", 2079518455, "cloudy", "aggressive", 121.0),
     ("mixed", 1859598460, "sunny", "normal", 97.0),
+    # bench/sim.py --episodes 420 --seconds 180 --workers 2, arterial seed 172: the ego turning
+    # left from a minor link, and an aggressive car standing at the stop sign across starts into
+    # it, "v30 hit ego (junction)" at 33.8 s (before standing stop-line foes counted)
+    ("arterial", 172, "sunny", "aggressive", 36.0),
+    # bench/learn.py --frames 12000 (build seed 21), arterial-21-0005: a car cutting in 15 m
+    # ahead, the ego braking at its vType decel only, "ego hit v40" at 6.3 s (before the
+    # emergency brake)
+    ("arterial", 1005867201, "cloudy", "aggressive", 10.0),
 ]
 
 

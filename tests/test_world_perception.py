@@ -187,3 +187,16 @@ def test_foe_eta_is_the_soonest_other_vehicle_into_the_junction():
     inside = [_car(0.0, 0.0, 0.0, 3.0, lane=":J_4_0")]
     assert perception.foe_eta_s(inside, Junction(), "J", "own") == 0.0
     assert perception.foe_eta_s(cars[2:], Junction(), "J", "own") is None
+
+
+def test_a_car_standing_at_a_stop_line_is_a_foe_only_where_the_lane_has_a_stop_sign():
+    stop_lanes = {"in_s_0"}.__contains__
+    at_line = [_car(-2.0, 0.0, 0.0, 0.0, lane="in_s_0")]  # 2 m before a stop line: may start
+    assert perception.foe_eta_s(at_line, Junction(), "J", "own", stop_lanes) == 0.0
+    assert perception.foe_eta_s(at_line, Junction(), "J", "own") is None  # not asked for
+    queued = [_car(-8.0, 0.0, 0.0, 0.0, lane="in_s_0")]  # further back, in the queue
+    assert perception.foe_eta_s(queued, Junction(), "J", "own", stop_lanes) is None
+    no_sign = [_car(-2.0, 0.0, 0.0, 0.0, lane="in_a_0")]  # waiting where no stop sign is
+    assert perception.foe_eta_s(no_sign, Junction(), "J", "own", stop_lanes) is None
+    inside = [_car(0.0, 0.0, 0.0, 0.0, lane=":J_4_0")]  # standing inside: as before, not
+    assert perception.foe_eta_s(inside, Junction(), "J", "own", stop_lanes) is None

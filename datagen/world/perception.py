@@ -28,6 +28,7 @@ CLEAR_FIRST_S = 1.5  # the ego goes first only if it clears the crossing this lo
 SWEEP_CLEARANCE_M = 0.3
 SWEEP_STEP_M = 0.5
 SWEEP_AHEAD_M = 40.0
+STOP_FOE_M = 3.0  # a vehicle standing this close to a stop line it must obey is a junction foe
 
 
 def is_kerb(lane_id: str, allowed: tuple[str, ...] | None) -> bool:
@@ -259,18 +260,28 @@ def crossing_obstacles(
 
 
 def foe_eta_s(
-    agents: Sequence[AgentReading], net: RoadNet, junction: str, own_edge: str
+    agents: Sequence[AgentReading],
+    net: RoadNet,
+    junction: str,
+    own_edge: str,
+    stop_controlled: Callable[[str], bool] | None = None,
 ) -> float | None:
     """Soonest time (s) any vehicle moving faster than 1 m/s on another lane into `junction`
     reaches it (straight-line distance from its front to its lane's end over its speed), 0 for
-    one already inside it; None if none. People are left to the crossing rule."""
+    one already inside it; None if none. People are left to the crossing rule.
+
+    With `stop_controlled` (lane id -> its entry has a stop sign), a vehicle standing within
+    STOP_FOE_M of the end of such a lane also counts, with 0: once its stop is done it may start
+    at any moment, and SUMO's right-of-way model let one start into the ego's left turn from
+    a minor link (arterial seed 172, "v30 hit ego")."""
     best = None
     prefix = f":{junction}_"
     for a in agents:
-        if a.type_id == PED_TYPE or a.speed_mps <= 1.0 or not a.lane_id:
+        if a.type_id == PED_TYPE or not a.lane_id:
             continue
+        moving = a.speed_mps > 1.0
         if a.lane_id.startswith(prefix):
-            if is_crossing(a.lane_id) or _WALKING_AREA.search(a.lane_id):
+            if not moving or is_crossing(a.lane_id) or _WALKING_AREA.search(a.lane_id):
                 continue
             eta = 0.0
         elif a.lane_id.startswith(":"):
@@ -279,9 +290,16 @@ def foe_eta_s(
             edge = a.lane_id.rsplit("_", 1)[0]
             if edge == own_edge or net.to_junction(edge) != junction:
                 continue
+            if not moving and stop_controlled is None:
+                continue
             end = net.lane(a.lane_id).pts[-1]
             dist = float(np.hypot(end[0] - a.front_xy_m[0], end[1] - a.front_xy_m[1]))
-            eta = dist / a.speed_mps
+            if moving:
+                eta = dist / a.speed_mps
+            elif dist < STOP_FOE_M and stop_controlled(a.lane_id):
+                eta = 0.0
+            else:
+                continue
         best = eta if best is None else min(best, eta)
     return best
 

@@ -192,6 +192,7 @@ class Network:
         self._links: dict[str, tuple[Link, ...]] = {}
         self._allowed: dict[str, tuple[str, ...]] = {}
         self._to_junction: dict[str, str] = {}
+        self._stop_controlled: dict[str, bool] = {}
 
     def lane(self, lane_id: str) -> Lane:
         lane = self._lanes.get(lane_id)
@@ -217,6 +218,14 @@ class Network:
             a = tuple(self._ls.lane.getAllowed(lane_id))
             self._allowed[lane_id] = a
         return a
+
+    def stop_controlled(self, lane_id: str) -> bool:
+        """A lane whose links into its junction have stop signs (static state "s" or "w")."""
+        stop = self._stop_controlled.get(lane_id)
+        if stop is None:
+            stop = any(k[5] in ("s", "w") for k in self._ls.lane.getLinks(lane_id))
+            self._stop_controlled[lane_id] = stop
+        return stop
 
     def lane_count(self, edge_id: str) -> int:
         return self._ls.edge.getLaneNumber(edge_id)
@@ -249,6 +258,7 @@ class Sumo:
             shutil.rmtree(tmp, ignore_errors=True)  # read at start-up; nothing to leak later
         self.net = Network(libsumo)
         self.TraCIException = libsumo.TraCIException
+        self._ego_regards_decel = True  # the ego's speed mode is 31 (SUMO's default)
 
     # ------------------------------------------------------------------ network
 
@@ -355,6 +365,7 @@ class Sumo:
         """Add the ego on `route` (at its start or a random free place), step until it is in
         (at most 50 steps); False, and nothing left behind, if SUMO could not insert it."""
         ls = self._ls
+        self._ego_regards_decel = True  # a new vehicle starts with speed mode 31
         ls.route.add(f"r_ego{attempt}", route)
         ls.vehicle.add(
             EGO_ID,
@@ -449,8 +460,13 @@ class Sumo:
     def set_ego_route(self, edges: list[str] | tuple[str, ...]) -> None:
         self._ls.vehicle.setRoute(EGO_ID, list(edges))
 
-    def set_ego_speed(self, speed_mps: float) -> None:
-        """The speed the ego should drive at (SUMO's safety model may cap it, speed mode 31)."""
+    def set_ego_speed(self, speed_mps: float, regard_decel: bool = True) -> None:
+        """The speed the ego should drive at. SUMO's safety model may cap it (speed mode 31);
+        with `regard_decel` False (speed mode 27, for emergency braking) it may also brake
+        harder than the vType's decel to reach it."""
+        if regard_decel != self._ego_regards_decel:
+            self._ls.vehicle.setSpeedMode(EGO_ID, 31 if regard_decel else 27)
+            self._ego_regards_decel = regard_decel
         self._ls.vehicle.setSpeed(EGO_ID, speed_mps)
 
     def take_over_ego(self) -> None:

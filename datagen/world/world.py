@@ -13,9 +13,11 @@ SUMO's default speed mode 31, so SUMO remains the safety net under the expert: i
 commanded speed by its safe speed behind the leader (bit 0), by the vType's acceleration and
 deceleration (bits 1, 2), by right of way at junctions, pedestrians on crossings included
 (bit 3), and brakes hard rather than pass a red light (bit 4). The ego vType's decel, the cap on
-commanded braking, is EGO_DECEL_SLACK x the comfortable deceleration the expert plans with; only
-SUMO's safety checks brake harder (up to emergencyDecel), i.e. only to avoid a collision
-(counted in `stats["hard_brakes"]`). When SUMO holds the ego below the expert's target, the
+commanded braking, is EGO_DECEL_SLACK x the comfortable deceleration the expert plans with. Only
+two things brake harder (up to emergencyDecel), both only to avoid a collision (counted in
+`stats["hard_brakes"]`): SUMO's safety checks, and the expert's emergency brake
+(`Decision.brake_mps2`, for a car cutting in close ahead or a person stepping out), applied as
+a speed for the step with bit 2 off (speed mode 27). When SUMO holds the ego below the expert's target, the
 step's reason names what it yields to (`junction`, `stop_sign`, `pedestrian`, `vehicle`). Lane
 choice and lane changes stay with SUMO's lane-change model.
 
@@ -359,6 +361,7 @@ class World:
                 self._net,
                 route.junction_of(self._snap.links[0].via_lane_id),
                 ego.road_id,
+                self._net.stop_controlled,
             )
         stop_foe = None
         stop_d = sig.stop_distance_m
@@ -432,9 +435,12 @@ class World:
         before = self._snap
         v0 = before.ego.speed_mps
         inp = self._expert_input()
-        dec = expert.decide(inp, p)
+        dec = expert.decide(inp, p, EGO_DECEL_SLACK * p.ego_comfort_decel_mps2)
         self._target, reason = dec.target_speed_mps, dec.reason
-        sumo.set_ego_speed(dec.target_speed_mps)
+        if dec.brake_mps2 > 0.0:  # an emergency: brake harder than the vType's decel
+            sumo.set_ego_speed(max(dec.target_speed_mps, v0 - dec.brake_mps2 * dt), False)
+        else:
+            sumo.set_ego_speed(dec.target_speed_mps)
         lane0 = before.ego.lane_id
         first_state = before.links[0].state if before.links else ""
         sumo.step()
