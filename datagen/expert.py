@@ -41,9 +41,9 @@ Rules:
                   it or beyond its exit leaves no room for the whole car past the exit, or
                   while a foe vehicle is within FOE_GAP_S of a junction where the ego's turn
                   would give way inside it (one standing at a stop line into it counts: it
-                  may start at any moment, perception.foe_eta_s); unless the car can no longer stop before the
-                  entry (then it goes on); also reported
-                  by world.py when SUMO's right-of-way model holds the ego back
+                  may start at any moment, perception.foe_eta_s); unless the car can no
+                  longer stop before the entry (then it goes on); also reported by world.py
+                  when SUMO's right-of-way model holds the ego back
 """
 
 from __future__ import annotations

@@ -290,13 +290,11 @@ def foe_eta_s(
             edge = a.lane_id.rsplit("_", 1)[0]
             if edge == own_edge or net.to_junction(edge) != junction:
                 continue
-            if not moving and stop_controlled is None:
-                continue
             end = net.lane(a.lane_id).pts[-1]
             dist = float(np.hypot(end[0] - a.front_xy_m[0], end[1] - a.front_xy_m[1]))
             if moving:
                 eta = dist / a.speed_mps
-            elif dist < STOP_FOE_M and stop_controlled(a.lane_id):
+            elif stop_controlled and dist < STOP_FOE_M and stop_controlled(a.lane_id):
                 eta = 0.0
             else:
                 continue

@@ -17,9 +17,9 @@ commanded braking, is EGO_DECEL_SLACK x the comfortable deceleration the expert 
 two things brake harder (up to emergencyDecel), both only to avoid a collision (counted in
 `stats["hard_brakes"]`): SUMO's safety checks, and the expert's emergency brake
 (`Decision.brake_mps2`, for a car cutting in close ahead or a person stepping out), applied as
-a speed for the step with bit 2 off (speed mode 27). When SUMO holds the ego below the expert's target, the
-step's reason names what it yields to (`junction`, `stop_sign`, `pedestrian`, `vehicle`). Lane
-choice and lane changes stay with SUMO's lane-change model.
+a speed for the step with bit 2 off (speed mode 27). When SUMO holds the ego below the expert's
+target, the step's reason names what it yields to (`junction`, `stop_sign`, `pedestrian`,
+`vehicle`). Lane choice and lane changes stay with SUMO's lane-change model.
 
 On top of SUMO's checks the expert yields to people on, or about to step onto, a crossing its
 path crosses (perception.crossing_obstacles: their next edge is the crossing; once inside a
@@ -438,7 +438,8 @@ class World:
         dec = expert.decide(inp, p, EGO_DECEL_SLACK * p.ego_comfort_decel_mps2)
         self._target, reason = dec.target_speed_mps, dec.reason
         if dec.brake_mps2 > 0.0:  # an emergency: brake harder than the vType's decel
-            sumo.set_ego_speed(max(dec.target_speed_mps, v0 - dec.brake_mps2 * dt), False)
+            v_cmd = max(dec.target_speed_mps, v0 - dec.brake_mps2 * dt)
+            sumo.set_ego_speed(v_cmd, regard_decel=False)
         else:
             sumo.set_ego_speed(dec.target_speed_mps)
         lane0 = before.ego.lane_id
