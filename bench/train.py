@@ -16,9 +16,10 @@
    target gives), from the loader's own schedule (`FrameStream.keys`, no decoding), with 2 and
    4 workers (the DataLoader takes batch j from worker j mod W);
 3. `train fit --config tiny --epochs 1` end to end on 200 synthetic frames (the demo's size);
-4. the paper config's parameter count, and where CUDA is available, its training samples/s and
-   peak GPU memory in bf16 on the GPU (compare with the loader's samples/s per worker to see how
-   many workers keep the GPU fed).
+4. the paper config's parameter count, its FLOPs per training sample, its CPU training samples/s
+   (float32, batch 4) and, where CUDA is available, its training samples/s, MFU and peak GPU
+   memory in bf16 (compare with the loader's samples/s per worker to see how many workers keep
+   the GPU fed).
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as `train` sets it (train
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 import torch  # noqa: E402
+from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests/
 
@@ -45,6 +47,9 @@ from training import data, fit  # noqa: E402
 from training.config import PRESETS  # noqa: E402
 from training.losses import compute_losses  # noqa: E402
 from training.model import IIDSU, INPUTS  # noqa: E402
+
+BF16_PEAK_FLOPS = {"H100": 989e12, "H200": 989e12, "A100": 312e12, "L4": 121e12}
+"""Dense bf16 tensor-core peaks (vendor data sheets, no sparsity), by a part of the device name."""
 
 
 def peak_rss_mb() -> float:
@@ -57,7 +62,9 @@ def batch_of(root: Path, output_px: int, batch_size: int, device: torch.device) 
     return fit.to_device(batch, device)
 
 
-def train_rate(preset: str, batch: dict, device: torch.device, steps: int) -> float:
+def train_rate(
+    preset: str, batch: dict, device: torch.device, steps: int, warmup: int = 3
+) -> float:
     """Training samples/s of `preset` on `batch` (bf16 autocast on CUDA, as `train fit`)."""
     model_cfg, train_cfg = PRESETS[preset]
     torch.manual_seed(0)
@@ -73,7 +80,7 @@ def train_rate(preset: str, batch: dict, device: torch.device, steps: int) -> fl
         loss.backward()
         optimizer.step()
 
-    for _ in range(3):  # warm-up: allocator, oneDNN / cuDNN algorithm choice
+    for _ in range(warmup):  # warm-up: allocator, oneDNN / cuDNN algorithm choice
         step()
     if cuda:
         torch.cuda.synchronize()
@@ -83,6 +90,18 @@ def train_rate(preset: str, batch: dict, device: torch.device, steps: int) -> fl
     if cuda:
         torch.cuda.synchronize()
     return steps * len(batch["speed"]) / (time.perf_counter() - t0)
+
+
+def train_flops_per_sample(preset: str, batch: dict) -> float:
+    """FLOPs of one training step's forward and backward pass per sample (torch's FlopCounterMode:
+    matmuls and convolutions, 2 per multiply-add), measured on a CPU batch."""
+    torch.manual_seed(0)
+    model_cfg, train_cfg = PRESETS[preset]
+    model = IIDSU(model_cfg)
+    with FlopCounterMode(display=False) as counter:
+        out = model(*(batch[k] for k in INPUTS))
+        compute_losses(out, batch, train_cfg)["total"].backward()
+    return counter.get_total_flops() / len(batch["speed"])
 
 
 def loader_rate(root: Path, output_px: int, workers: int, n: int, open_units: int) -> float:
@@ -136,6 +155,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=20, help="timed training steps")
     parser.add_argument("--shards", type=Path, help="measure the loader on these shards instead")
+    parser.add_argument(
+        "--paper-cpu-steps",
+        type=int,
+        default=3,
+        help="timed CPU training steps of the paper config at batch 4 (0: skip; ~1 min)",
+    )
     parser.add_argument(
         "--loader-frames", type=int, default=200, help="frames per loader epoch (200)"
     )
@@ -193,15 +218,36 @@ def main() -> None:
         with torch.device("meta"):
             n_params = sum(p.numel() for p in IIDSU(PRESETS["paper"][0]).parameters())
         print(f"\n4. paper config: {n_params / 1e6:.2f} M parameters")
+        paper_model, paper_train = PRESETS["paper"]
+        flops = train_flops_per_sample("paper", batch_of(root, paper_model.output_px, 2, cpu))
+        print(
+            f"   {flops / 1e9:.1f} GFLOP per training sample (forward + backward, FlopCounterMode)"
+        )
+        if args.paper_cpu_steps:
+            b = 4
+            rss0 = peak_rss_mb()
+            batch = batch_of(root, paper_model.output_px, b, cpu)
+            rate = train_rate("paper", batch, cpu, args.paper_cpu_steps, warmup=1)
+            print(
+                f"   CPU, float32, batch {b}, {args.paper_cpu_steps} steps: {rate:.2f} training "
+                f"samples/s = {rate * flops / 1e9:.0f} GFLOP/s; peak RSS {peak_rss_mb():.0f} MB "
+                f"({peak_rss_mb() - rss0:.0f} MB above the process before)"
+            )
         if torch.cuda.is_available():
             gpu = torch.device("cuda")
-            paper_model, paper_train = PRESETS["paper"]
             batch = batch_of(root, paper_model.output_px, paper_train.batch_size, gpu)
             torch.cuda.reset_peak_memory_stats()
             rate = train_rate("paper", batch, gpu, args.steps)
+            name = torch.cuda.get_device_name()
+            peak = next((v for k, v in BF16_PEAK_FLOPS.items() if k in name), None)
+            mfu = (
+                f"MFU {rate * flops / peak:.1%} of {peak / 1e12:.0f} TFLOP/s"
+                if peak
+                else "MFU: peak unknown"
+            )
             print(
-                f"   {torch.cuda.get_device_name()}, bf16, batch {paper_train.batch_size}: "
-                f"{rate:.1f} training samples/s; peak GPU memory "
+                f"   {name}, bf16, batch {paper_train.batch_size}: "
+                f"{rate:.1f} training samples/s ({mfu}); peak GPU memory "
                 f"{torch.cuda.max_memory_allocated() / 2**30:.1f} GiB"
             )
         else:
