@@ -1,5 +1,6 @@
 """The expert's rules as pure functions (no SUMO)."""
 
+import dataclasses
 import math
 
 import pytest
@@ -7,6 +8,7 @@ import pytest
 from datagen import expert
 from datagen.behaviour import PROFILES
 from datagen.expert import Decision, ExpertInput, Obstacle, decide
+from datagen.world.fleet import EGO_DECEL_SLACK
 
 P = PROFILES["normal"]
 LIMIT = 13.89
@@ -120,6 +122,37 @@ def test_slow_car_waits_for_the_next_green_when_this_one_ends_before_it_clears()
     assert at(10.0, 8.0, 0.5).reason == "none"  # too close to stop comfortably: goes on
     assert at(10.0, 40.0, 0.5).reason == "none"  # at 10 m/s it clears within the yellow
     assert at(1.0, 2.0, None).reason == "none"  # green left unknown (no signal read)
+
+
+def test_a_turn_is_timed_at_the_speed_its_curve_allows_and_stopped_for_at_the_firm_decel():
+    # a left turn 30 m ahead, 25 m through, radius ~9 m (curvature 0.11): ~5 m/s inside it
+    turn = ((30.0, 0.004), (37.0, 0.11), (43.0, 0.088))
+    inp = ExpertInput(
+        15.0,
+        LIMIT,
+        curvature_ahead=turn,
+        light="green",
+        light_distance_m=30.0,
+        junction_entry_m=30.0,
+        junction_exit_m=55.0,
+        green_left_s=1.5,
+    )
+    v_in = math.sqrt(P.ego_lat_accel_mps2 / 0.11)
+    assert expert.clear_time_s(inp, P) == pytest.approx(30.0 / 15.0 + 31.0 / v_in)
+    straight = ExpertInput(15.0, LIMIT, junction_entry_m=30.0, junction_exit_m=55.0)
+    assert expert.clear_time_s(straight, P) == pytest.approx(61.0 / 15.0)
+    # 15 m/s needs 45 m at the comfortable 2.5 m/s^2, 37.5 m at 1.2 x: too close, it goes on
+    assert expert.light_rule(inp, P) == math.inf
+    # from 40 m (needs > 37.5) it stops: the green ends (+ yellow) long before it clears
+    far = dataclasses.replace(
+        inp, light_distance_m=40.0, junction_entry_m=40.0, junction_exit_m=65.0
+    )
+    assert expert.light_rule(far, P) < 15.0
+    assert expert.light_rule(dataclasses.replace(far, green_left_s=10.0), P) == math.inf
+
+
+def test_the_firm_decel_is_the_ego_vtypes():
+    assert expert.FIRM_DECEL_FACTOR == EGO_DECEL_SLACK
 
 
 def test_after_the_stop_the_car_waits_at_the_line_while_a_foe_is_near():

@@ -28,9 +28,9 @@ EPISODES = (
     ("grid3-3-0", 3, "sunny", "normal", 5),
     ("grid3-8-1", 8, "rainy", "aggressive", 3),
 )
-EXPECTED_SHA256 = {  # scene v2, data v8, schema 1.1
-    "grid3-3-0": "a5b0fd4dbda640a957a9bbd6001478152068226f820e5add608f3331ed9725f5",
-    "grid3-8-1": "fde1b43d76290b58271821b70ed30f6bee3e072440e1a8312dfe69847b1a7209",
+EXPECTED_SHA256 = {  # scene v2, data v9, schema 1.1
+    "grid3-3-0": "400621c63ec06debc5ddcc67e1f26265b370d25210ced4900a06f378a58fec2d",
+    "grid3-8-1": "71a007e6dff109e904d2ed475ab6460233f9004dd23afbe9c7d7d308bd449756",
 }
 
 

@@ -442,6 +442,13 @@ FORMER_COLLISIONS = [
     # ahead, the ego braking at its vType decel only, "ego hit v40" at 6.3 s (before the
     # emergency brake)
     ("arterial", 1005867201, "cloudy", "aggressive", 10.0),
+    # datagen build --towns 8 --frames 146000 (seed 0, data v8), spider-0-0033: the ego
+    # stopped just past a junction for a bus beside it (its loose box extents), which turned
+    # into its rear, "v214 hit ego (junction)" at 175.1 s; arterial-0-0020: a left turn begun
+    # at 14 m/s 1 s before yellow, still inside when the cross traffic got green, "v182 hit
+    # ego (junction)" at 171.9 s
+    ("spider", 1967986422, "cloudy", "normal", 177.0),
+    ("arterial", 502562067, "sunny", "aggressive", 173.0),
 ]
 
 

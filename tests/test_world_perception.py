@@ -57,6 +57,36 @@ def test_vehicle_on_the_path_ahead_is_an_obstacle_with_its_speed_along_the_path(
     assert perception.obstacles([_car(34.5, 3.2, 0.0, 5.0)], _kerb, False, PATH, None) == []
 
 
+def test_a_skewed_bus_beside_the_ego_is_on_its_path_only_by_the_part_ahead_in_the_corridor():
+    # spider, build seed 0, episode 33: a 12 m bus 3 degrees off the opposite direction, its
+    # centre 2.8 m left; its corner near the ego's lane lies 5.7 m behind the ego's front
+    # (beside the car), where braking cannot help: the loose extents made it a -5.9 m obstacle,
+    # the ego stopped, and the turning bus hit its rear ("v214 hit ego (junction)")
+    yaw = math.radians(180.0 + 3.0)
+    centre = np.array([0.2, 2.8])
+    front = centre + 6.0 * np.array([math.cos(yaw), math.sin(yaw)])
+    bus = AgentReading("v214", "bus", tuple(front), yaw, 3.0, ":J_2_0")
+    assert perception.obstacles([bus], _kerb, False, PATH, None) == []
+    span = perception.corridor_span(centre, yaw, 12.0, 2.55, PATH, 0.5 * EGO_DIMS_M[1] + 0.35)
+    assert span is not None and span[1] < 0.0  # the sliver in the corridor is behind the front
+    # the same bus turned 25 degrees across the path ahead is an obstacle where it enters it
+    yaw = math.radians(180.0 - 25.0)
+    centre = np.array([12.0, 3.0])
+    front = centre + 6.0 * np.array([math.cos(yaw), math.sin(yaw)])
+    bus = AgentReading("v214", "bus", tuple(front), yaw, 3.0, ":J_2_0")
+    (o,) = perception.obstacles([bus], _kerb, False, PATH, None)
+    lo, hi = perception.corridor_span(centre, yaw, 12.0, 2.55, PATH, 0.5 * EGO_DIMS_M[1] + 0.35)
+    assert o.distance_m == pytest.approx(lo) and 0.0 < lo < hi
+
+
+def test_corridor_span_of_an_aligned_box_is_its_length():
+    assert perception.corridor_span(np.array([20.0, 0.5]), 0.0, 4.5, 1.8, PATH, 1.3) == (
+        pytest.approx(17.75),
+        pytest.approx(22.25),
+    )
+    assert perception.corridor_span(np.array([20.0, -3.2]), 0.0, 4.5, 1.8, PATH, 1.3) is None
+
+
 def test_leader_gap_gets_back_the_ego_min_gap():
     (o,) = perception.obstacles([], _kerb, False, PATH, Leader("v9", 12.0, 3.0))
     assert (o.distance_m, o.speed_mps, o.track_id) == (13.0, 3.0, "lead:v9")

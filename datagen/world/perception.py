@@ -4,10 +4,12 @@ the ego's front bumper)."""
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Callable, Sequence
 
 import numpy as np
+import shapely
 
 from datagen import expert
 from datagen.world.fleet import EGO_DIMS_M, PED_TYPE, dims
@@ -29,6 +31,7 @@ SWEEP_CLEARANCE_M = 0.3
 SWEEP_STEP_M = 0.5
 SWEEP_AHEAD_M = 40.0
 STOP_FOE_M = 3.0  # a vehicle standing this close to a stop line it must obey is a junction foe
+VEHICLE_MARGIN_M = 0.35  # a vehicle's box this close to the ego's corridor is on its path
 
 
 def is_kerb(lane_id: str, allowed: tuple[str, ...] | None) -> bool:
@@ -86,6 +89,37 @@ def swept_contact(
     touch = (dist < reach) | closer
     first = touch.argmax(1)
     return np.where(touch.any(1), u[first], np.inf)
+
+
+def corridor_span(
+    xy: np.ndarray, yaw_rad: float, length_m: float, width_m: float, path: Path, half_width_m: float
+) -> tuple[float, float] | None:
+    """Along-path extent (from, to), m from the ego's front, of the part of a box (centre `xy`
+    (2,), heading `yaw_rad`, world frame) within `half_width_m` of `path`; None if no part is.
+
+    The box is placed in the path's frame at the projection of its centre (the path taken as
+    straight over the box's length), then cut to the corridor with shapely."""
+    along, lat, head = project(xy[None], path.pts, path.s)
+    h = float(head[0])
+    at = np.array(
+        [np.interp(along[0], path.s, path.pts[:, 0]), np.interp(along[0], path.s, path.pts[:, 1])]
+    )
+    side = float((xy - at) @ np.array([-math.sin(h), math.cos(h)]))  # left of the path > 0
+    lat0 = math.copysign(float(lat[0]), side)
+    rel = yaw_rad - h
+    c, sn = math.cos(rel), math.sin(rel)
+    half_l, half_w = 0.5 * length_m, 0.5 * width_m
+    corners = [
+        (float(along[0]) + dx * c - dy * sn, lat0 + dx * sn + dy * c)
+        for dx, dy in ((half_l, half_w), (half_l, -half_w), (-half_l, -half_w), (-half_l, half_w))
+    ]
+    inside = shapely.Polygon(corners).intersection(
+        shapely.box(-1e6, -half_width_m, 1e6, half_width_m)
+    )
+    if inside.is_empty:
+        return None
+    lo, _, hi, _ = inside.bounds
+    return float(lo), float(hi)
 
 
 def obstacles(
@@ -152,7 +186,7 @@ def obstacles(
                 c, sn = np.abs(np.cos(rel)), np.abs(np.sin(rel))
                 across = 0.5 * length[sel] * sn + 0.5 * width[sel] * c
                 ahead = 0.5 * length[sel] * c + 0.5 * width[sel] * sn
-                margin = np.where(is_ped[sel], np.where(kerb_a[sel], 0.0, 0.8), 0.35)
+                margin = np.where(is_ped[sel], np.where(kerb_a[sel], 0.0, 0.8), VEHICLE_MARGIN_M)
                 hit = (lat - across < half_w + margin) & (along + ahead > 0.0)
                 hit &= along - ahead < s[-1]
                 for j in np.flatnonzero(hit):
@@ -160,9 +194,17 @@ def obstacles(
                     gap = float(along[j] - ahead[j])
                     if is_ped[i]:
                         out.append(expert.Obstacle(gap, 0.0, "pedestrian", ids[i]))
-                    else:
-                        v_along = max(0.0, float(spd_a[i] * np.cos(rel[j])))
-                        out.append(expert.Obstacle(gap, v_along, "vehicle", ids[i]))
+                        continue
+                    # The extents above bound a skewed box loosely (a 12 m bus 15 degrees off
+                    # the path reaches 1.6 m further across): a vehicle counts by the part of
+                    # its box that lies in the corridor, and only if that part is ahead.
+                    span = corridor_span(
+                        p[j], yaw_a[i], length[i], width[i], path, half_w + VEHICLE_MARGIN_M
+                    )
+                    if span is None or span[1] <= 0.0 or span[0] >= s[-1]:
+                        continue
+                    v_along = max(0.0, float(spd_a[i] * np.cos(rel[j])))
+                    out.append(expert.Obstacle(span[0], v_along, "vehicle", ids[i]))
             # people standing or walking, kerb included, against the body swept on turns
             peds = k[is_ped[k]]
             if len(peds):
