@@ -1,6 +1,6 @@
 """The paper's experiments as one resumable pipeline of the project's own commands.
 
-    experiment run --preset small --out runs/exp        # ~1 h on 2 CPU cores
+    experiment run --preset small --out runs/exp        # ~45 min on 2 CPU cores
     experiment run --preset paper --out runs/paper --device cuda --nproc 8
     experiment run --preset small --out runs/exp --until fit-full   # stop after that step
 
