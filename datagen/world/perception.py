@@ -92,25 +92,34 @@ def swept_contact(
 
 
 def corridor_span(
-    xy: np.ndarray, yaw_rad: float, length_m: float, width_m: float, path: Path, half_width_m: float
+    xy: np.ndarray,
+    yaw_rad: float,
+    length_m: float,
+    width_m: float,
+    path: Path,
+    half_width_m: float,
+    projection: tuple[float, float, float] | None = None,
 ) -> tuple[float, float] | None:
     """Along-path extent (from, to), m from the ego's front, of the part of a box (centre `xy`
     (2,), heading `yaw_rad`, world frame) within `half_width_m` of `path`; None if no part is.
 
     The box is placed in the path's frame at the projection of its centre (the path taken as
-    straight over the box's length), then cut to the corridor with shapely."""
-    along, lat, head = project(xy[None], path.pts, path.s)
-    h = float(head[0])
+    straight over the box's length), then cut to the corridor with shapely. `projection`:
+    `route.project`'s (along, unsigned lateral, heading) of `xy`, where the caller has it."""
+    if projection is None:
+        along, lat, head = project(xy[None], path.pts, path.s)
+        projection = (float(along[0]), float(lat[0]), float(head[0]))
+    along0, lat, h = projection
     at = np.array(
-        [np.interp(along[0], path.s, path.pts[:, 0]), np.interp(along[0], path.s, path.pts[:, 1])]
+        [np.interp(along0, path.s, path.pts[:, 0]), np.interp(along0, path.s, path.pts[:, 1])]
     )
     side = float((xy - at) @ np.array([-math.sin(h), math.cos(h)]))  # left of the path > 0
-    lat0 = math.copysign(float(lat[0]), side)
+    lat0 = math.copysign(lat, side)
     rel = yaw_rad - h
     c, sn = math.cos(rel), math.sin(rel)
     half_l, half_w = 0.5 * length_m, 0.5 * width_m
     corners = [
-        (float(along[0]) + dx * c - dy * sn, lat0 + dx * sn + dy * c)
+        (along0 + dx * c - dy * sn, lat0 + dx * sn + dy * c)
         for dx, dy in ((half_l, half_w), (half_l, -half_w), (-half_l, -half_w), (-half_l, half_w))
     ]
     inside = shapely.Polygon(corners).intersection(
@@ -132,7 +141,8 @@ def obstacles(
     """Vehicles and people on (or entering) the ego's path, and the lane leader.
 
     A box is on the path when its extent across the path comes within the ego's half width plus
-    a margin (0.35 m vehicles, 0.8 m people on the road, 0 at the kerb). People are also taken
+    a margin (0.35 m vehicles, 0.8 m people on the road, 0 at the kerb); a vehicle, by the part
+    of its box inside that corridor ahead of the front (`corridor_span`). People are also taken
     where they will be in 1 s and 2 s at their speed. `kerb(lane_id)` says whether a lane is a
     sidewalk or walking area; the leader's gap gets back the ego vType's 1 m minGap.
     """
@@ -191,15 +201,22 @@ def obstacles(
                 hit &= along - ahead < s[-1]
                 for j in np.flatnonzero(hit):
                     i = sel[j]
-                    gap = float(along[j] - ahead[j])
                     if is_ped[i]:
+                        gap = float(along[j] - ahead[j])
                         out.append(expert.Obstacle(gap, 0.0, "pedestrian", ids[i]))
                         continue
-                    # The extents above bound a skewed box loosely (a 12 m bus 15 degrees off
-                    # the path reaches 1.6 m further across): a vehicle counts by the part of
-                    # its box that lies in the corridor, and only if that part is ahead.
+                    # The extents above bound a skewed box by a rectangle along the path, which
+                    # joins a corner in the corridor beside the ego to a far end ahead of it
+                    # beside the lane (a 12 m bus 3 degrees off the opposite direction): a
+                    # vehicle counts by the part of its box in the corridor, if that is ahead.
                     span = corridor_span(
-                        p[j], yaw_a[i], length[i], width[i], path, half_w + VEHICLE_MARGIN_M
+                        p[j],
+                        yaw_a[i],
+                        length[i],
+                        width[i],
+                        path,
+                        half_w + VEHICLE_MARGIN_M,
+                        (float(along[j]), float(lat[j]), float(head[j])),
                     )
                     if span is None or span[1] <= 0.0 or span[0] >= s[-1]:
                         continue
