@@ -48,6 +48,11 @@ def main(argv: list[str] | None = None) -> int:
         "(smoke runs; ends 'max_sim_s')",
     )
     e.add_argument(
+        "--no-creep",
+        action="store_true",
+        help="no creep: a policy that stands 55 s is not pushed forward (TransFuser's rule)",
+    )
+    e.add_argument(
         "--baseline", type=Path, default=None, help="an expert run's --out: traffic delay vs it"
     )
     w = sub.add_parser("swap", help="one scene in two weathers: what the model plans (Fig. 6)")

@@ -17,6 +17,13 @@ The vehicle is a kinematic bicycle about the box centre (Rajamani, "Vehicle Dyna
 Control", Sec. 2.2): slip angle beta = atan(l_r / L tan delta), x' = v cos(yaw + beta),
 y' = v sin(yaw + beta), yaw' = v / l_r sin beta, v' = a. Steering is positive to the left
 (yaw counter-clockwise), unlike CARLA's.
+
+`Creep` is TransFuser's stuck detector (Chitta et al., TPAMI 2022, the evaluation agent and its
+config: `stuck_threshold`, `creep_duration`, `creep_throttle`, the LiDAR `safety_box`): a model
+that has stood still for 55 s is pushed forward for 1.5 s at throttle 0.4, unless its own LiDAR
+sees something in a small box just ahead of the car. Imitation models learn from their speed
+input that a standing car stays standing (the "inertia" of Codevilla et al. 2019); the creep
+gets them rolling again, as in the baselines the paper compares with.
 """
 
 from __future__ import annotations
@@ -120,8 +127,11 @@ class Controller:
         self.turn = PID(c.turn_kp, c.turn_ki, c.turn_kd, c.turn_n)
         self.speed = PID(c.speed_kp, c.speed_ki, c.speed_kd, c.speed_n)
 
-    def control(self, waypoints_ego: np.ndarray, speed_mps: float) -> Control:
-        """waypoints_ego: (>=2, 2) float, m, ego frame, 0.5 s apart -> this step's Control."""
+    def control(
+        self, waypoints_ego: np.ndarray, speed_mps: float, creep_throttle: float = 0.0
+    ) -> Control:
+        """waypoints_ego: (>=2, 2) float, m, ego frame, 0.5 s apart -> this step's Control.
+        `creep_throttle` > 0 (Creep): no brake and at least that throttle."""
         c = self.config
         w = np.asarray(waypoints_ego, dtype=np.float64)
         desired = float(np.linalg.norm(w[1] - w[0])) / (WAYPOINT_TIMES_S[1] - WAYPOINT_TIMES_S[0])
@@ -133,7 +143,91 @@ class Controller:
         steer = float(np.clip(self.turn.step(angle), -1.0, 1.0))
         delta = float(np.clip(desired - speed_mps, 0.0, c.clip_delta_mps))
         throttle = float(np.clip(self.speed.step(delta), 0.0, c.max_throttle))
+        if creep_throttle > 0.0:
+            return Control(steer=steer, throttle=max(throttle, creep_throttle), brake=False)
         return Control(steer=steer, throttle=0.0 if brake else throttle, brake=bool(brake))
+
+
+@dataclass(frozen=True)
+class CreepConfig:
+    """TransFuser's creep (module docstring; its values, converted from 20 Hz frames to s).
+
+    Attributes:
+        stuck_s: standing this long (slower than stuck_speed_mps) starts a creep.
+        duration_s: how long a creep lasts; throttle: its least throttle, 0..1.
+        box_ahead_m: the safety box reaches this far ahead of the front bumper ...
+        box_side_m: ... is this much wider than the car on each side ...
+        box_low_m, box_high_m: ... and holds LiDAR returns between these heights above the
+            ground (the ground itself and overhead signs do not count).
+    """
+
+    stuck_s: float = 55.0
+    stuck_speed_mps: float = 0.1
+    duration_s: float = 1.5
+    throttle: float = 0.4
+    box_ahead_m: float = 4.0
+    box_side_m: float = 0.2
+    box_low_m: float = 0.5
+    box_high_m: float = 2.0
+
+
+def safety_box_clear(
+    points_world: np.ndarray, pose: Pose, length_m: float, width_m: float, config: CreepConfig
+) -> bool:
+    """True if none of the LiDAR returns `points_world` ((N, 3), world frame, z above the
+    ground, m) lies in the safety box ahead of a car of `length_m` x `width_m` (m) whose box
+    centre is at `pose`."""
+    p = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+    z = p[:, 2]
+    p = p[(z >= config.box_low_m) & (z <= config.box_high_m)]
+    if not len(p):
+        return True
+    local = pose.ego_from_world(p[:, :2])
+    front = 0.5 * length_m
+    inside = (
+        (local[:, 0] >= front)
+        & (local[:, 0] <= front + config.box_ahead_m)
+        & (np.abs(local[:, 1]) <= 0.5 * width_m + config.box_side_m)
+    )
+    return not bool(inside.any())
+
+
+@dataclass
+class Creep:
+    """The stuck detector (stateful): `step(speed, clear_ahead)` once per control step returns
+    the creep throttle for this step (0.0: none). A creep starts once the car has stood
+    `stuck_s` and the safety box is clear, and stops early if the box fills. Time is counted
+    in whole steps of `step_s`."""
+
+    config: CreepConfig = field(default_factory=CreepConfig)
+    step_s: float = 0.1
+    stood_steps: int = 0
+    creep_steps_left: int = 0
+    creeps: int = 0  # how many creeps started
+
+    @property
+    def _stuck_steps(self) -> int:
+        return round(self.config.stuck_s / self.step_s)
+
+    @property
+    def due(self) -> bool:
+        """Whether the caller should look at the safety box (a creep may start or is on)."""
+        return self.creep_steps_left > 0 or self.stood_steps + 1 >= self._stuck_steps
+
+    def step(self, speed_mps: float, clear_ahead: bool) -> float:
+        c = self.config
+        self.stood_steps = self.stood_steps + 1 if speed_mps < c.stuck_speed_mps else 0
+        if self.creep_steps_left <= 0 and self.stood_steps >= self._stuck_steps and clear_ahead:
+            self.creep_steps_left = round(c.duration_s / self.step_s)
+            self.creeps += 1
+        if self.creep_steps_left > 0:
+            if not clear_ahead:
+                self.creep_steps_left = 0
+                return 0.0
+            self.creep_steps_left -= 1
+            self.stood_steps = 0
+            return c.throttle
+        return 0.0
 
 
 def bicycle_step(

@@ -8,6 +8,9 @@ every 0.1 s step the infraction tracker (drive/infractions.py) judges the ground
 expert drives inside the world as when recording data; any other policy plans 4 waypoints at
 2 Hz (the data's rate) and the controller (drive/controller.py) moves the ego every step,
 placed in SUMO anywhere (off its lane or the road too) with its speed, so others react to it.
+A policy that has stood still 55 s creeps forward unless its LiDAR sees something just ahead
+(TransFuser's creep, `drive.controller.Creep`; `--no-creep` turns it off); each route's result
+counts its creeps.
 The route ends when it is complete, on a route deviation, a blocked agent or a timeout.
 
 Writes OUT/routes/<route_id>.json (scores, every infraction with time and position, the extra
@@ -30,10 +33,19 @@ import numpy as np
 from datagen.errors import UserError
 from datagen.world import TELEPORT_S
 from drive import score
-from drive.controller import Controller, Plan, VehicleState, bicycle_step
+from drive.controller import (
+    Controller,
+    Creep,
+    CreepConfig,
+    Plan,
+    VehicleState,
+    bicycle_step,
+    safety_box_clear,
+)
 from drive.policy import PolicySpec, constant_waypoints
 from drive.routes import Route, resolve_net
 
+CREEP_STUCK_S = CreepConfig().stuck_s
 PLAN_PERIOD_S = 0.5  # the policy plans at the data's 2 Hz
 STEP_S = 0.1  # SUMO step: the controller and the infraction tracker run every step
 # The expert's world gives up on an ego that stands 80 s or that SUMO teleports out of a jam:
@@ -53,6 +65,7 @@ class Task:
     record: bool
     net_override: str | None = None
     max_sim_s: float | None = None  # stop after this much simulated time (smoke runs)
+    creep: bool = True  # a policy that stands still creeps (drive.controller.Creep)
 
 
 def _write_json(path: Path, doc: dict) -> None:
@@ -102,15 +115,13 @@ def drive_route(
             _MODELS.clear()
             _MODELS[key] = ModelPolicy(spec, sensor_cfg.to_dict())
         model = _MODELS[key]
-    need_sensors = model is not None or task.record
-    sensors = (
-        SensorStream(
-            Sensors(static, sensor_cfg, route.weather, episode_rng(route.seed)),
-            sensor_cfg.jpeg_quality,
-        )
-        if need_sensors
-        else None
-    )
+
+    def sensor_stream() -> SensorStream:
+        sense = Sensors(static, sensor_cfg, route.weather, episode_rng(route.seed))
+        return SensorStream(sense, sensor_cfg.jpeg_quality)
+
+    # without a model or a video the sensors start only when the creep needs the LiDAR
+    sensors = sensor_stream() if model is not None or task.record else None
     recorder = None
     if task.record:
         from drive.video import Recorder
@@ -120,6 +131,8 @@ def drive_route(
     timing = {"setup": time.perf_counter() - t0, "sim": 0.0, "sensors": 0.0, "policy": 0.0}
     timing.update(judge=0.0)
     external = planner is not None or not spec.privileged
+    creep = Creep(step_s=STEP_S) if task.creep and external else None
+    clear_ahead = False  # the creep's safety box at the last plan, looked at only when due
     with DrivenWorld(net, route, external=external, **(world_options or {})) as world:
         if on_start is not None:
             on_start()
@@ -146,8 +159,18 @@ def drive_route(
                     progress(0)
                 t = time.perf_counter()
                 image_jpeg = lidar_png = ground_png = None
-                if sensors is not None:
+                if sensors is not None and (model is not None or recorder is not None):
                     image_jpeg, lidar_png, ground_png = sensors.encode(frame)
+                if creep is not None and creep.due:
+                    if sensors is None:
+                        sensors = sensor_stream()
+                    sweep = sensors.sweep(frame) if image_jpeg is None else sensors.last_sweep
+                    ego = frame.ego
+                    clear_ahead = safety_box_clear(
+                        sweep.points_m, ego.pose, ego.length_m, ego.width_m, creep.config
+                    )
+                else:
+                    clear_ahead = False
                 timing["sensors"] += time.perf_counter() - t
                 t = time.perf_counter()
                 if planner is not None:
@@ -163,7 +186,9 @@ def drive_route(
                     recorder.add(frame, image_jpeg, lidar_png, plan, tracker)
             t = time.perf_counter()
             if plan is not None:
-                ctrl = controller.control(plan.at(frame.time_s, vehicle.pose), vehicle.speed_mps)
+                push = creep.step(vehicle.speed_mps, clear_ahead) if creep is not None else 0.0
+                aim = plan.at(frame.time_s, vehicle.pose)
+                ctrl = controller.control(aim, vehicle.speed_mps, creep_throttle=push)
                 vehicle = bicycle_step(vehicle, ctrl, STEP_S)
                 world.place_ego(vehicle.pose, vehicle.speed_mps)
             world.step()
@@ -207,6 +232,7 @@ def drive_route(
         "traffic_delay_rate": round(tracker.traffic_delay_s / max(sim_s, 1e-6), 4),
         "sim_s": round(sim_s, 2),
         "ended": tracker.ended or (f"world_{world_end}" if world_end else "max_sim_s"),
+        "creeps": creep.creeps if creep is not None else 0,
         "end_detail": world_detail if tracker.ended is None else "",
         "timing": {k: round(v, 4) for k, v in timing.items()},
     }
@@ -267,6 +293,8 @@ def summary_doc(name: str, docs: list[dict], baseline: dict[str, dict] | None = 
         "traffic_delay_s_mean": float(np.mean([d["traffic_delay_s"] for d in docs])),
         "traffic_delay_rate_mean": float(np.mean([_delay_rate(d) for d in docs])),
         "sim_s": float(sum(d["sim_s"] for d in docs)),
+        "creeps": int(sum(d.get("creeps", 0) for d in docs)),
+        "routes_with_creeps": int(sum(d.get("creeps", 0) > 0 for d in docs)),
         "wall_s": float(sum(d["timing"]["total"] for d in docs)),
     }
     if baseline:
@@ -295,6 +323,11 @@ def format_summary(doc: dict) -> str:
     if doc.get("traffic_delay_rate_vs_baseline_mean") is not None:
         extra += f" ({doc['traffic_delay_rate_vs_baseline_mean']:+.2f} vs the baseline)"
     lines.append(extra)
+    if doc.get("creeps"):
+        lines.append(
+            f"{doc['creeps']} creep(s) in {doc['routes_with_creeps']} route(s): stood "
+            f"{CREEP_STUCK_S:.0f} s and was pushed forward (drive.controller.Creep)"
+        )
     return "\n".join(lines)
 
 
@@ -331,7 +364,15 @@ def run(args) -> int:
             raise UserError(f"--baseline {args.baseline}: no routes/*.json results in it")
     out = Path(args.out)
     tasks = [
-        Task(r, spec, str(out), i < args.record, str(args.net) if args.net else None, max_sim)
+        Task(
+            r,
+            spec,
+            str(out),
+            i < args.record,
+            str(args.net) if args.net else None,
+            max_sim,
+            creep=not args.no_creep,
+        )
         for i, r in enumerate(routes)
     ]
     from tqdm import tqdm

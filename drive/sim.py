@@ -90,6 +90,13 @@ class SensorStream:
         self.sensors = sensors
         self.jpeg_quality = jpeg_quality
         self._sweeps: deque = deque(maxlen=HISTORY + 1)
+        self.last_sweep = None  # datagen.lidar.Sweep of the last instant encoded or swept
+
+    def sweep(self, frame: FrameState):
+        """Only the LiDAR sweep of `frame` (no camera, no encoding; for the creep's safety box
+        where no model needs the sensors)."""
+        self.last_sweep = self.sensors.sweep(self.sensors.scene(frame), frame)
+        return self.last_sweep
 
     def encode(self, frame: FrameState) -> tuple[bytes, bytes, bytes]:
         """(camera JPEG, LiDAR BEV PNG, current ground-hits PNG) of `frame`; call once per
@@ -99,7 +106,8 @@ class SensorStream:
 
         sense = self.sensors
         scene = sense.scene(frame)
-        self._sweeps.appendleft(sense.sweep(scene, frame))  # [t, t-1, t-2]
+        self.last_sweep = sense.sweep(scene, frame)
+        self._sweeps.appendleft(self.last_sweep)  # [t, t-1, t-2]
         hist = list(self._sweeps) + [self._sweeps[-1]] * (self._sweeps.maxlen - len(self._sweeps))
         counts = sense.lidar_counts(hist)
         return (

@@ -12,10 +12,13 @@ from drive import score
 from drive.controller import (
     Control,
     Controller,
+    Creep,
+    CreepConfig,
     Plan,
     VehicleConfig,
     VehicleState,
     bicycle_step,
+    safety_box_clear,
 )
 from drive.geometry import RouteGeometry, StopLine
 from drive.infractions import InfractionTracker, time_to_collision
@@ -127,6 +130,60 @@ def test_plan_held_in_world_frame_is_transfusers_two_waypoints_when_fresh():
     # 0.25 s later, from the same pose, the points have moved half a waypoint on
     later = plan.at(3.25, pose)
     assert np.allclose(later[0], 0.5 * (wps[0] + wps[1]))
+
+
+def _stand_and_creep(clear_ahead, steps: int):
+    """A plan that stands still, with the creep: (speeds per step, creeps started)."""
+    ctrl, creep = Controller(), Creep(step_s=0.1)
+    s = VehicleState(Pose(0.0, 0.0, 0.0), 0.0)
+    speeds = []
+    for k in range(steps):
+        push = creep.step(s.speed_mps, clear_ahead(k))
+        s = bicycle_step(s, ctrl.control(np.zeros((4, 2)), s.speed_mps, creep_throttle=push), 0.1)
+        speeds.append(s.speed_mps)
+    return np.array(speeds), creep.creeps, s
+
+
+def test_a_car_that_stood_55_s_creeps_for_1_5_s_and_stops_again():
+    speeds, creeps, end = _stand_and_creep(lambda k: True, 700)  # 70 s
+    moving = np.flatnonzero(speeds > 0.0)
+    assert creeps == 1
+    assert moving[0] == 549  # the 550th step: 55 s of standing
+    assert 15 <= len(moving) <= 25  # 1.5 s of push, then the plan's brake stops it
+    # throttle 0.4 x 4 m/s2 for 1.5 s: 2.4 m/s, about 1.8 m, then 6 m/s2 of braking
+    assert speeds.max() == pytest.approx(2.4, abs=0.05)
+    assert 1.5 < end.pose.x_m < 3.0 and abs(end.pose.y_m) < 1e-9
+
+
+def test_no_creep_while_the_safety_box_holds_something_and_a_filling_box_stops_it():
+    speeds, creeps, end = _stand_and_creep(lambda k: False, 700)
+    assert creeps == 0 and speeds.max() == 0.0
+    # clear when due, then an obstacle appears 0.5 s into the creep
+    speeds, creeps, end = _stand_and_creep(lambda k: k < 555, 700)
+    assert creeps == 1 and end.pose.x_m < 0.5 * 1.8
+
+
+def test_creep_comes_again_after_another_55_s_of_standing():
+    _, creeps, end = _stand_and_creep(lambda k: True, 1150)  # 115 s
+    assert creeps == 2 and end.pose.x_m > 3.0
+
+
+def test_safety_box_is_just_ahead_of_the_bumper_and_ignores_ground_and_overhead():
+    cfg = CreepConfig()
+    pose = Pose(10.0, 20.0, math.pi / 2)  # facing +y; the car is 4.5 m x 1.8 m
+    ahead = 2.25 + 2.0  # 2 m past the front bumper
+
+    def clear(x_ego, y_ego, z):
+        world = pose.world_from_ego(np.array([[x_ego, y_ego]]))[0]
+        return safety_box_clear(np.array([[*world, z]]), pose, 4.5, 1.8, cfg)
+
+    assert not clear(ahead, 0.0, 1.0)
+    assert not clear(ahead, 1.05, 1.0)  # within the 0.2 m side margin
+    assert clear(ahead, 1.2, 1.0)  # beside the box
+    assert clear(ahead, 0.0, 0.2) and clear(ahead, 0.0, 3.0)  # ground, overhead
+    assert clear(2.25 + 4.5, 0.0, 1.0) and clear(-ahead, 0.0, 1.0)  # beyond it, behind
+    assert clear(0.0, 0.0, 1.0)  # inside the car itself: not ahead of its front
+    assert safety_box_clear(np.zeros((0, 3)), pose, 4.5, 1.8, cfg)
 
 
 # --- geometry --------------------------------------------------------------------------------

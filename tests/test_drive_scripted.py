@@ -52,8 +52,8 @@ def _route(net, edges=("WC", "CE")):
     )
 
 
-def _drive(net, tmp_path, planner, on_start=None, edges=("WC", "CE")):
-    task = Task(_route(net, edges), PolicySpec("constant"), str(tmp_path), False)
+def _drive(net, tmp_path, planner, on_start=None, edges=("WC", "CE"), **task_options):
+    task = Task(_route(net, edges), PolicySpec("constant"), str(tmp_path), False, **task_options)
     return drive_route(task, planner=planner, on_start=on_start, world_options=QUIET)
 
 
@@ -125,7 +125,34 @@ def test_leaving_the_road_is_off_road_and_a_layout_collision(nets, tmp_path):
 
 
 def test_a_policy_that_never_moves_is_agent_blocked(nets, tmp_path):
-    doc = _drive(nets["light"], tmp_path, lambda f: np.zeros((4, 2)))
+    doc = _drive(nets["light"], tmp_path, lambda f: np.zeros((4, 2)), creep=False)
     assert _counts(doc) == {"agent_blocked": 1}, doc["events"]
     assert doc["ended"] == "agent_blocked" and doc["ds"] < 0.1
     assert 89.0 <= doc["events"][0]["time_s"] <= 92.0
+
+
+def test_a_policy_that_stands_55_s_creeps_forward_on_an_empty_road(nets, tmp_path):
+    doc = _drive(nets["light"], tmp_path, lambda f: np.zeros((4, 2)), max_sim_s=60.0)
+    assert doc["creeps"] == 1 and doc["ended"] == "max_sim_s"
+    assert 1.0 < doc["distance_m"] < 4.0, doc["distance_m"]  # 1.5 s at throttle 0.4, then brake
+    assert _counts(doc) == {}
+
+
+def test_no_creep_into_a_car_parked_just_ahead(nets, tmp_path):
+    def park_ahead():
+        front = ls.vehicle.getLanePosition("ego")
+        ls.route.add("r_ahead", ["WC", "CE"])
+        ls.vehicle.add(
+            "ahead",
+            "r_ahead",
+            typeID="car",
+            depart="now",
+            departSpeed="0",
+            departPos=f"{front + 2.0 + 5.0}",
+        )  # its rear about 2 m ahead
+        ls.simulationStep()
+        ls.vehicle.setSpeed("ahead", 0.0)
+
+    doc = _drive(nets["light"], tmp_path, lambda f: np.zeros((4, 2)), park_ahead, max_sim_s=60.0)
+    assert doc["creeps"] == 0 and doc["distance_m"] < 0.1
+    assert _counts(doc) == {}
