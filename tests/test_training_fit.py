@@ -103,6 +103,10 @@ def test_ddp_runs_with_two_cpu_processes(shards, tmp_path):
     assert state["step"] == math.ceil(12 / 2 / 2)
     (metrics,) = map(json.loads, (out / "metrics.jsonl").read_text().splitlines())
     assert metrics["val"]["total"] > 0 and metrics["train"]["total"] > 0
+    # `train eval`'s metrics are of both ranks' shares of the 4 held-out frames, not rank 0's
+    index = data.scan(shards)
+    assert index.episode_id.isin(state["val_episodes"]).sum() == 4
+    assert metrics["val_metrics"]["frames"] == 4
 
 
 def test_fit_logs_every_term_to_jsonl_and_tensorboard(shards, tmp_path):

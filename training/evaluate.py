@@ -92,15 +92,26 @@ def binary_scores(prob: np.ndarray, truth: np.ndarray) -> dict:
 
 
 @torch.no_grad()
-def evaluate(model, loader, device: torch.device) -> dict:
+def evaluate(model, loader, device: torch.device, proc=None) -> dict:
     """Every metric of the module docstring for the heads `model` has (in eval mode: BatchNorm
-    uses its running statistics; the model's mode is restored after)."""
+    uses its running statistics; the model's mode is restored after).
+
+    Under DDP (`proc`: training.fit.Process with world > 1) every rank must call it: each
+    measures its own share of the loader's frames and the metrics are of all shares together
+    (the raw errors, detections and counts are gathered, then scored once)."""
     was_training = model.training
     model.eval()
     try:
-        return _evaluate(model, loader, device)
+        raw = _collect(model, loader, device)
     finally:
         model.train(was_training)
+    if proc is not None and proc.world > 1:
+        import torch.distributed as dist
+
+        parts = [None] * proc.world
+        dist.all_gather_object(parts, raw)
+        raw = {k: [x for part in parts for x in part[k]] for k in raw}
+    return _score(raw, model.cfg.heads)
 
 
 def headline(result: dict) -> dict[str, float | None]:
@@ -109,6 +120,7 @@ def headline(result: dict) -> dict[str, float | None]:
     stop_sign_f1, weather_accuracy."""
     p, cv = result["planning"], result["constant_velocity"]
     out = {
+        "frames": result["frames"],
         "ade_m": p["ade_m"],
         "fde_m": p["fde_m"],
         "cv_ade_m": cv["ade_m"],
@@ -127,23 +139,24 @@ def headline(result: dict) -> dict[str, float | None]:
     return out
 
 
-def _evaluate(model, loader, device: torch.device) -> dict:
-    heads = model.cfg.heads
+def _collect(model, loader, device: torch.device) -> dict[str, list]:
+    """What the metrics are computed from, per batch or frame, as lists of numpy arrays (lists
+    of several ranks concatenate): waypoint and constant-velocity errors, m; per timestep t the
+    decoded peaks and true centres per frame; the BEV confusion; traffic and weather outputs."""
     R = model.cfg.output_px
     times = torch.tensor(WAYPOINT_TIMES_S)
-    wp_err, cv_err = [], []  # (B, 4, 2) errors, m
-    preds = [[] for _ in range(N_T)]
-    truths = [[] for _ in range(N_T)]
-    confusion = np.zeros((len(BEV_CLASSES),) * 2, np.int64)
-    traffic_prob, traffic_true, weather_pred, weather_true = [], [], [], []
+    raw: dict[str, list] = {k: [] for k in ("wp_err", "cv_err", "confusion")}
+    raw.update({f"preds_{t}": [] for t in range(N_T)})
+    raw.update({f"truths_{t}": [] for t in range(N_T)})
+    raw.update({k: [] for k in ("traffic_prob", "traffic_true", "weather_pred", "weather_true")})
     for batch in loader:
         batch = to_device(batch, device)
         with autocast(device):
             out = model(*(batch[k] for k in INPUTS))
         gt_wp = batch["waypoints"].cpu()
-        wp_err.append(out["planning"].float().cpu() - gt_wp)
+        raw["wp_err"].append((out["planning"].float().cpu() - gt_wp).numpy())
         cv = torch.stack([batch["speed"].cpu()[:, None] * times, torch.zeros(len(gt_wp), 4)], 2)
-        cv_err.append(cv - gt_wp)
+        raw["cv_err"].append((cv - gt_wp).numpy())
         if "detection" in out:
             heat, reg = split_density(out["detection"].float())
             heat = heat.sigmoid()
@@ -151,21 +164,26 @@ def _evaluate(model, loader, device: torch.device) -> dict:
                 batch[k].cpu().numpy() for k in ("centre_index", "centre_reg", "centre_mask")
             ]
             for t in range(N_T):
-                preds[t] += decode_centres(heat[:, t], reg[:, t], threshold=0.05)
-                truths[t] += [
+                raw[f"preds_{t}"] += decode_centres(heat[:, t], reg[:, t], threshold=0.05)
+                raw[f"truths_{t}"] += [
                     centres_to_objects(idx[t], r[t], m[t], R) for idx, r, m in zip(*centres)
                 ]
         if "bev" in out:
             pred = out["bev"].argmax(1).flatten().cpu().numpy()
             true = batch["bev"].long().flatten().cpu().numpy()
-            confusion += np.bincount(true * 3 + pred, minlength=9).reshape(3, 3)
+            raw["confusion"].append(np.bincount(true * 3 + pred, minlength=9).reshape(3, 3))
         if "traffic" in out:
-            traffic_prob.append(out["traffic"].float().sigmoid().cpu().numpy())
-            traffic_true.append(batch["traffic"].cpu().numpy())
+            raw["traffic_prob"].append(out["traffic"].float().sigmoid().cpu().numpy())
+            raw["traffic_true"].append(batch["traffic"].cpu().numpy())
         if "weather" in out:
-            weather_pred.append(out["weather"].argmax(1).cpu().numpy())
-            weather_true.append(batch["weather"].cpu().numpy())
-    if not wp_err:
+            raw["weather_pred"].append(out["weather"].argmax(1).cpu().numpy())
+            raw["weather_true"].append(batch["weather"].cpu().numpy())
+    return raw
+
+
+def _score(raw: dict[str, list], heads) -> dict:
+    """The metrics of `_collect`'s lists (of one rank or all)."""
+    if not raw["wp_err"]:
         raise UserError("no frames to evaluate")
 
     def planning(err: torch.Tensor) -> dict:
@@ -176,7 +194,8 @@ def _evaluate(model, loader, device: torch.device) -> dict:
             "fde_m": dist[:, -1].mean().item(),
         }
 
-    wp_err, cv_err = torch.cat(wp_err), torch.cat(cv_err)
+    wp_err = torch.from_numpy(np.concatenate(raw["wp_err"]))
+    cv_err = torch.from_numpy(np.concatenate(raw["cv_err"]))
     result = {
         "frames": len(wp_err),
         "planning": planning(wp_err),
@@ -185,24 +204,26 @@ def _evaluate(model, loader, device: torch.device) -> dict:
     if "detection" in heads:
         result["detection"] = {}
         for t, name in enumerate(TIMESTEP_NAMES):
-            aps = {f"ap@{d:g}m": average_precision(preds[t], truths[t], d) for d in DISTANCES_M}
+            pt, tt = raw[f"preds_{t}"], raw[f"truths_{t}"]
+            aps = {f"ap@{d:g}m": average_precision(pt, tt, d) for d in DISTANCES_M}
             valid = [v for v in aps.values() if v is not None]
             aps["map"] = float(np.mean(valid)) if valid else None
             result["detection"][name] = aps
     if "bev" in heads:
+        confusion = np.sum(raw["confusion"], axis=0)
         inter = np.diag(confusion)
         union = confusion.sum(0) + confusion.sum(1) - inter
         iou = {c: (float(i / u) if u else None) for c, i, u in zip(BEV_CLASSES, inter, union)}
         valid = [v for v in iou.values() if v is not None]
         result["bev"] = {"iou": iou, "miou": float(np.mean(valid)) if valid else None}
     if "traffic" in heads:
-        prob, true = np.concatenate(traffic_prob), np.concatenate(traffic_true)
+        prob, true = np.concatenate(raw["traffic_prob"]), np.concatenate(raw["traffic_true"])
         result["traffic"] = {
             "red_light": binary_scores(prob[:, 0], true[:, 0]),
             "stop_sign": binary_scores(prob[:, 1], true[:, 1]),
         }
     if "weather" in heads:
-        pred, true = np.concatenate(weather_pred), np.concatenate(weather_true)
+        pred, true = np.concatenate(raw["weather_pred"]), np.concatenate(raw["weather_true"])
         matrix = np.bincount(true * 4 + pred, minlength=16).reshape(4, 4)
         result["weather"] = {
             "accuracy": float((pred == true).mean()),

@@ -356,11 +356,11 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
             "train": {k: v / n_train for k, v in train.items()},
             "val": estimate_loss(raw_model, val_loader, cfg, proc),
         }
-        if proc.master and cfg.val_metrics and len(val_stream.units):
+        if cfg.val_metrics and len(val_stream.units):
             from training.evaluate import evaluate, headline  # evaluate imports this module
 
-            # On this rank's share of the held-out frames (all of them without DDP).
-            metrics["val_metrics"] = headline(evaluate(raw_model, val_loader, proc.device))
+            # every rank measures its share; the metrics are of all the held-out frames
+            metrics["val_metrics"] = headline(evaluate(raw_model, val_loader, proc.device, proc))
         rngs = [None] * proc.world
         if proc.world > 1:
             dist.all_gather_object(rngs, _rng_state(proc.device))
