@@ -26,6 +26,12 @@ import numpy as np
 
 from schemas import BEHAVIOURS, WEATHERS
 
+# The ego vType's decel (the cap on commanded braking) is this much above the comfortable
+# deceleration the expert plans with (Profile.ego_comfort_decel_mps2): room to track the planned
+# profile at a 0.1 s step without overshooting stop points (measured: at exactly b a red-light
+# stop ends ~0.7 m further). The expert's firmest stop for a green that ends too soon uses it.
+EGO_DECEL_SLACK = 1.2
+
 
 @dataclass(frozen=True)
 class Profile:

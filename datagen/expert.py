@@ -53,7 +53,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from datagen.behaviour import Profile
+from datagen.behaviour import EGO_DECEL_SLACK, Profile
 
 STOP_LINE_MARGIN_M = 1.0  # the ego's front stops this far before a red light's stop line
 STOP_SIGN_MARGIN_M = 0.5  # ... and this far before a stop sign's line
@@ -72,11 +72,10 @@ FOE_GAP_S = 5.0
 # green left plus the shortest yellow (SUMO's tls default: 3 s); see light_rule.
 CLEAR_SPEED_MPS = 4.0
 YELLOW_S = 3.0
-# A green that ends too soon is still stopped for at up to this x the comfortable deceleration
-# (the ego vType's decel: fleet.EGO_DECEL_SLACK, asserted equal by the tests): with the comfort
-# limit only, a car that began braking for it on the boundary fell behind its profile and went
-# on into a left turn 1 s before yellow ("v182 hit ego", arterial, build seed 0, episode 20).
-FIRM_DECEL_FACTOR = 1.2
+# A green that ends too soon is still stopped for at up to the ego vType's decel
+# (EGO_DECEL_SLACK x the comfortable deceleration): with the comfort limit only, a car that
+# began braking for it on the boundary fell behind its profile and went on into a left turn 1 s
+# before yellow ("v182 hit ego", arterial, build seed 0, episode 20).
 EMERGENCY_GAP_M = 1.0  # emergency braking stops this short of a vehicle or person on the path
 
 
@@ -228,7 +227,7 @@ def light_rule(inp: ExpertInput, p: Profile) -> float:
         t_clear = clear_time_s(inp, p)
         if t_clear <= inp.green_left_s + YELLOW_S:
             return math.inf  # clears it in time
-        if v * v / (2.0 * FIRM_DECEL_FACTOR * b) > inp.light_distance_m:
+        if v * v / (2.0 * EGO_DECEL_SLACK * b) > inp.light_distance_m:
             return math.inf  # cannot stop before it at the firmest commanded braking: go on
         return approach_speed(room, 0.0, b)
     if inp.light not in ("red", "yellow"):

@@ -8,7 +8,6 @@ import pytest
 from datagen import expert
 from datagen.behaviour import PROFILES
 from datagen.expert import Decision, ExpertInput, Obstacle, decide
-from datagen.world.fleet import EGO_DECEL_SLACK
 
 P = PROFILES["normal"]
 LIMIT = 13.89
@@ -149,10 +148,6 @@ def test_a_turn_is_timed_at_the_speed_its_curve_allows_and_stopped_for_at_the_fi
     )
     assert expert.light_rule(far, P) < 15.0
     assert expert.light_rule(dataclasses.replace(far, green_left_s=10.0), P) == math.inf
-
-
-def test_the_firm_decel_is_the_ego_vtypes():
-    assert expert.FIRM_DECEL_FACTOR == EGO_DECEL_SLACK
 
 
 def test_after_the_stop_the_car_waits_at_the_line_while_a_foe_is_near():

@@ -15,8 +15,8 @@ Everything other modules import from here is re-exported below, so `from datagen
 World, WorldConfig, record` stays the one entry point.
 """
 
+from datagen.behaviour import EGO_DECEL_SLACK
 from datagen.world.fleet import (
-    EGO_DECEL_SLACK,
     EGO_DIMS_M,
     EGO_ID,
     PED_DIMS_M,

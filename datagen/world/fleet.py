@@ -19,10 +19,6 @@ VEHICLE_TYPES = (
 EGO_DIMS_M = (4.7, 1.85, 1.5)  # length, width, height (a mid-size sedan)
 PED_DIMS_M = (0.4, 0.5, 1.75)
 PED_TYPE = "ped"
-# The ego vType's decel (the cap on commanded braking) is this much above the comfortable
-# deceleration the expert plans with: room to track the planned profile at a 0.1 s step without
-# overshooting stop points (measured: at exactly b a red-light stop ends ~0.7 m further).
-EGO_DECEL_SLACK = 1.2
 
 _DIMS: dict[str, tuple[float, float, float, str]] = {
     vid: (length, width, height, cls) for vid, _c, length, width, height, _sh, cls in VEHICLE_TYPES

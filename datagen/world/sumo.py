@@ -23,11 +23,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from datagen.behaviour import Profile, vtype_attributes
+from datagen.behaviour import EGO_DECEL_SLACK, Profile, vtype_attributes
 from datagen.errors import UserError
 from datagen.state import Pose
 from datagen.world.fleet import (
-    EGO_DECEL_SLACK,
     EGO_DIMS_M,
     EGO_ID,
     PED_DIMS_M,

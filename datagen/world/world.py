@@ -75,11 +75,11 @@ from pathlib import Path
 import numpy as np
 
 from datagen import expert
-from datagen.behaviour import PROFILES, Profile
+from datagen.behaviour import EGO_DECEL_SLACK, PROFILES, Profile
 from datagen.errors import UserError
 from datagen.state import AgentState, FrameState, Pose
 from datagen.world import perception, route
-from datagen.world.fleet import EGO_DECEL_SLACK, EGO_DIMS_M, EGO_ID, dims
+from datagen.world.fleet import EGO_DIMS_M, EGO_ID, dims
 from datagen.world.route import PATH_LOOKAHEAD_M, SIGNAL_RANGE_M
 from datagen.world.sumo import Collision, Snapshot, StepEvents, Sumo, box_centre
 from datagen.world.traffic import Traffic
