@@ -120,8 +120,9 @@ def drive_route(
         sense = Sensors(static, sensor_cfg, route.weather, episode_rng(route.seed))
         return SensorStream(sense, sensor_cfg.jpeg_quality)
 
-    # without a model or a video the sensors start only when the creep needs the LiDAR
-    sensors = sensor_stream() if model is not None or task.record else None
+    # encoded at every plan for a model or a video; else started only when the creep needs them
+    encode = model is not None or task.record
+    sensors = sensor_stream() if encode else None
     recorder = None
     if task.record:
         from drive.video import Recorder
@@ -159,12 +160,12 @@ def drive_route(
                     progress(0)
                 t = time.perf_counter()
                 image_jpeg = lidar_png = ground_png = None
-                if sensors is not None and (model is not None or recorder is not None):
+                if encode:
                     image_jpeg, lidar_png, ground_png = sensors.encode(frame)
                 if creep is not None and creep.due:
                     if sensors is None:
                         sensors = sensor_stream()
-                    sweep = sensors.sweep(frame) if image_jpeg is None else sensors.last_sweep
+                    sweep = sensors.last_sweep if encode else sensors.sweep(frame)
                     ego = frame.ego
                     clear_ahead = safety_box_clear(
                         sweep.points_m, ego.pose, ego.length_m, ego.width_m, creep.config

@@ -52,27 +52,27 @@ def _routes(out: Path, name: str, kind: str) -> list[dict]:
     ]
 
 
-def closed_loop(out: Path, preset, kind: str) -> dict[str, Summary]:
-    """Per variant, drive/score.py's Summary over all its seeds' routes pooled (DS, RC, IS with
-    95 % half-widths, per-km rates)."""
+def variant_routes(out: Path, preset, kind: str) -> dict[str, list[dict]]:
+    """Per variant with any, the route result documents of all its seeds pooled."""
+    rows = {}
+    for v in preset.variants:
+        docs = [d for s in preset.seeds for d in _routes(out, f"{v}-s{s}", kind)]
+        if docs:
+            rows[v] = docs
+    return rows
+
+
+def closed_loop(docs: dict[str, list[dict]]) -> dict[str, Summary]:
+    """Per variant, drive/score.py's Summary over its pooled routes (DS, RC, IS with 95 %
+    half-widths, per-km rates)."""
     from drive.evaluate import route_score
 
-    rows = {}
-    for v in preset.variants:
-        docs = [d for s in preset.seeds for d in _routes(out, f"{v}-s{s}", kind)]
-        if docs:
-            rows[v] = summarise([route_score(d) for d in docs])
-    return rows
+    return {v: summarise([route_score(d) for d in ds]) for v, ds in docs.items()}
 
 
-def creeps_per_route(out: Path, preset, kind: str) -> dict[str, float]:
+def creeps_per_route(docs: dict[str, list[dict]]) -> dict[str, float]:
     """Per variant, the mean number of creeps (drive.controller.Creep) per route."""
-    rows = {}
-    for v in preset.variants:
-        docs = [d for s in preset.seeds for d in _routes(out, f"{v}-s{s}", kind)]
-        if docs:
-            rows[v] = sum(d.get("creeps", 0) for d in docs) / len(docs)
-    return rows
+    return {v: sum(d.get("creeps", 0) for d in ds) / len(ds) for v, ds in docs.items()}
 
 
 def _table_iii(rows: dict[str, Summary], creeps: dict[str, float], with_paper: bool) -> list[str]:
@@ -157,8 +157,12 @@ def _claims(held: dict[str, Summary], swap: dict, analyze: dict | None) -> list[
 
 def write(out: Path, preset, preset_name: str, steps) -> Path:
     """Write OUT/REPORT.md; its path."""
-    held = closed_loop(out, preset, "heldout")
-    seen = closed_loop(out, preset, "seen")
+    from drive.controller import CreepConfig
+
+    creep = CreepConfig()
+    held_docs = variant_routes(out, preset, "heldout")
+    seen_docs = variant_routes(out, preset, "seen")
+    held, seen = closed_loop(held_docs), closed_loop(seen_docs)
     analyze = _load(out / "analyze.json")
     swap = {
         n: d
@@ -178,15 +182,16 @@ def write(out: Path, preset, preset_name: str, steps) -> Path:
         "",
         "## Table III, held-out town (`boulevard`, drive/routes/heldout_short.json)",
         "",
-        *_table_iii(held, creeps_per_route(out, preset, "heldout"), with_paper=True),
+        *_table_iii(held, creeps_per_route(held_docs), with_paper=True),
         "",
         "## Table III, seen towns (drive/routes/training_towns.json)",
         "",
-        *_table_iii(seen, creeps_per_route(out, preset, "seen"), with_paper=False),
+        *_table_iii(seen, creeps_per_route(seen_docs), with_paper=False),
         "",
         "Intervals: 95 % (Student's t) over routes and seeds pooled; infractions per km driven. "
-        "creeps: per route, how often a model that had stood 55 s was pushed forward for 1.5 s "
-        "(TransFuser's creep, drive.controller.Creep; the paper's baselines drive with it).",
+        f"creeps: per route, how often a model that had stood {creep.stuck_s:g} s was pushed "
+        f"forward for {creep.duration_s:g} s (TransFuser's creep, drive.controller.Creep; the "
+        "paper's baselines drive with it).",
         "",
         "## Table II: ECA channel weights of each head vs planning's",
         "",
