@@ -7,7 +7,7 @@ For a sample of frames of every town it prints the checkpoint's weather-head acc
 then fits three linear probes (softmax regression, full batch, on the seen towns' frames) and
 scores them on the seen and the held-out town:
 - `fdsu`: the pooled scene feature F_DSU (what the weather head reads, before its ECA);
-- `image`: the pooled output of the camera encoder's last stage;
+- `image`: the pooled output of the camera encoder's last stage, run without the fusion layers;
 - `colour`: 15 statistics of the raw image (mean RGB of four 64-row bands, per-channel std).
 
 A head that is as wrong on its own training towns as on the held-out one, while the probes are
@@ -28,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from training import data  # noqa: E402
 from training.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
+from training.errors import UserError  # noqa: E402
 
 
 def features(model, samples: list[dict], batch: int = 16) -> tuple[dict, np.ndarray]:
@@ -40,10 +41,10 @@ def features(model, samples: list[dict], batch: int = 16) -> tuple[dict, np.ndar
             img = torch.from_numpy(np.stack([s["image"] for s in b]))
             lid = torch.from_numpy(np.stack([s["lidar"] for s in b]))
             speed = torch.tensor([s["speed"] for s in b])
-            target = torch.from_numpy(np.stack([s["target_point"] for s in b]))
-            if "weather" in model.heads:
-                preds.append(model(img, lid, speed, target)["weather"].argmax(1).numpy())
-            feats["fdsu"].append(model.encode(img, lid, speed).mean((2, 3)).numpy())
+            f = model.encode(img, lid, speed)
+            if "weather" in model.heads:  # the weather head as IIDSU.forward applies it
+                preds.append(model.heads["weather"](model.eca["weather"](f)).argmax(1).numpy())
+            feats["fdsu"].append(f.mean((2, 3)).numpy())
             x = model.image_encoder.stem((img.float() / 255 - model.mean) / model.std)
             for stage in model.image_encoder.stages:
                 x = stage(x)
@@ -80,9 +81,12 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
 
-    state = load_checkpoint(args.ckpt)
+    try:
+        state = load_checkpoint(args.ckpt)
+        index = data.scan(args.shards)
+    except UserError as e:
+        sys.exit(f"error: {e}")
     model = model_from_checkpoint(state)
-    index = data.scan(args.shards)
     held = args.held_out
     if held is None:
         towns = set(index[index.episode_id.isin(state.get("val_episodes", []))].town)
