@@ -120,5 +120,5 @@ class ModelPolicy:
                 torch.from_numpy(image)[None].to(dev), torch.from_numpy(lidar)[None].to(dev), speed
             )
             target = torch.tensor(tp[None], dtype=torch.float32, device=dev)
-            waypoints = m.heads["planning"](m.eca["planning"](f), target)  # (1, 4, 2)
+            waypoints = m.heads["planning"](m.eca["planning"](f), target, speed)  # (1, 4, 2)
         return waypoints[0].float().cpu().numpy().astype(np.float64)

@@ -34,6 +34,9 @@ class ModelConfig:
     feature_dim: int = 1024  # channels of F_DSU, the 8x8 scene feature (Sec. III-A)
     # Heads (Sec. III-B).
     planner_hidden: int = 128  # GRU state; the 3-layer MLP reduces F_DSU's 1024-d to this
+    # Ours, not the paper's: the planner's MLP also reads the measured ego speed, m/s (the
+    # paper feeds it only to the fusion tokens; see training/heads.py PlanningHead).
+    planner_speed: bool = True
     n_waypoints: int = 4  # T_future; the shards hold +0.5 .. +2.0 s
     output_px: int = 256  # R, side of the dense heads' maps; 256 / 2**k with k >= 0
     decoder_width: int = 256  # channels after the first up-sampling step; halved per step
@@ -82,6 +85,7 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> ModelConfig:
+        d = {"planner_speed": False, **d}  # checkpoints from before the option had no speed
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
 
 

@@ -159,7 +159,9 @@ class IIDSU(nn.Module):
         steps = int(math.log2(cfg.output_px // cfg.feature_px))
         C = cfg.feature_dim
         make = {
-            "planning": lambda: PlanningHead(C, cfg.planner_hidden, cfg.n_waypoints),
+            "planning": lambda: PlanningHead(
+                C, cfg.planner_hidden, cfg.n_waypoints, cfg.planner_speed
+            ),
             "detection": lambda: DensityHead(C, steps, cfg.decoder_width),
             "bev": lambda: BEVHead(C, steps, cfg.decoder_width),
             "traffic": lambda: TrafficRuleHead(C),
@@ -212,5 +214,7 @@ class IIDSU(nn.Module):
         out = {}
         for name, head in self.heads.items():
             f_head = self.eca[name](f)
-            out[name] = head(f_head, target_point) if name == "planning" else head(f_head)
+            out[name] = (
+                head(f_head, target_point, speed) if name == "planning" else head(f_head)
+            )
         return out
