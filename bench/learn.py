@@ -33,6 +33,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from schemas import WAYPOINT_TIMES_S  # noqa: E402
+from schemas.dataset import shard_files  # noqa: E402
 from training import evaluate  # noqa: E402
 
 GOALS = {
@@ -99,6 +101,33 @@ def table(result: dict, compare: dict | None) -> str:
     return "\n".join(lines)
 
 
+def kinematic_baselines(data: Path, town: str) -> dict[str, float]:
+    """ADE (m) on `town`'s frames that have a frame 0.5 s before in their episode, of constant
+    velocity (what `train eval` reports over all frames) and of constant acceleration from the
+    speed 0.5 s before (never a model input: how much of the waypoints is ego dynamics alone)."""
+    import numpy as np
+    import pyarrow.parquet as pq
+
+    cols = ["episode_id", "time_s", "ego_speed", "waypoints"]
+    filters = [("town", "==", town)]
+    t = pq.ParquetDataset(shard_files(data), filters=filters).read(columns=cols).to_pandas()
+    t = t.sort_values(["episode_id", "time_s"]).reset_index(drop=True)
+    wp = np.stack([np.asarray(w, dtype=np.float64).reshape(-1, 2) for w in t.waypoints])
+    v, times = t.ego_speed.to_numpy(np.float64), np.asarray(WAYPOINT_TIMES_S)
+    by_episode = t.groupby("episode_id")
+    v_before, dt = by_episode.ego_speed.shift(1).to_numpy(), by_episode.time_s.diff().to_numpy()
+    ok = np.isfinite(v_before) & (np.abs(dt - 0.5) < 1e-3)
+    accel = np.where(ok, (v - np.nan_to_num(v_before)) / 0.5, 0.0)
+    x_cv = v[:, None] * times
+    x_ca = np.maximum.accumulate(np.maximum(x_cv + 0.5 * accel[:, None] * times**2, 0), axis=1)
+
+    def ade(x: np.ndarray) -> float:
+        pred = np.stack([x, np.zeros_like(x)], axis=2)
+        return float(np.linalg.norm(pred - wp, axis=2).mean(1)[ok].mean())
+
+    return {"frames": int(ok.sum()), "cv_ade_m": ade(x_cv), "ca_ade_m": ade(x_ca)}
+
+
 def epochs_table(run: Path) -> str:
     lines = [
         "",
@@ -156,6 +185,14 @@ def main() -> None:
     compare = json.loads(args.compare.read_text()) if args.compare else None
     print()
     print(table(result, compare))
+    if args.eval_only is None or args.data.is_dir():
+        k = kinematic_baselines(args.data, args.val_town)
+        print(
+            f"\nego dynamics on {args.val_town} ({k['frames']} frames with one 0.5 s before): "
+            f"constant velocity ADE {k['cv_ade_m']:.3f} m, constant acceleration from the speed "
+            f"0.5 s before {k['ca_ade_m']:.3f} m (not a model input: a model given its past "
+            "speeds could beat the ADE goal by extrapolation alone)"
+        )
     print(epochs_table(run))
     if fit_s is not None:
         frames = _built(args.data)

@@ -39,6 +39,25 @@ def test_tiny_heads_have_paper_layout():
     }
 
 
+def test_planner_reads_the_speed_and_old_checkpoints_load_without_it():
+    from training.checkpoint import model_from_checkpoint
+    from training.config import ModelConfig
+
+    head = IIDSU(TINY).heads["planning"]
+    f = torch.randn(2, TINY.feature_dim, 8, 8)
+    tp = torch.tensor([[20.0, 1.0], [20.0, 1.0]])
+    with torch.no_grad():
+        slow, fast = head(f, tp, torch.tensor([0.0, 0.0])), head(f, tp, torch.tensor([8.0, 8.0]))
+    assert not torch.allclose(slow, fast)
+    # a config saved before `planner_speed` existed is a planner without the speed input
+    old = {k: v for k, v in dataclasses.asdict(TINY).items() if k != "planner_speed"}
+    assert ModelConfig.from_dict(old).planner_speed is False
+    state = {"model": IIDSU(ModelConfig.from_dict(old)).state_dict(), "model_config": old}
+    model = model_from_checkpoint(state)
+    assert model.heads["planning"].mlp[0].in_features == TINY.feature_dim
+    assert model(*_inputs(1))["planning"].shape == (1, 4, 2)
+
+
 def test_paper_model_shapes_on_meta_device():
     # The paper model (70 M parameters, R = 256) costs seconds per frame on a CPU; meta tensors
     # check every shape without computing anything.

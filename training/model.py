@@ -214,7 +214,5 @@ class IIDSU(nn.Module):
         out = {}
         for name, head in self.heads.items():
             f_head = self.eca[name](f)
-            out[name] = (
-                head(f_head, target_point, speed) if name == "planning" else head(f_head)
-            )
+            out[name] = head(f_head, target_point, speed) if name == "planning" else head(f_head)
         return out
