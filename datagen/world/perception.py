@@ -13,8 +13,8 @@ import shapely
 
 from datagen import expert
 from datagen.world.fleet import EGO_DIMS_M, PED_TYPE, dims
-from datagen.world.route import Path, RoadNet, first_intersection, project
-from datagen.world.sumo import AgentReading, Leader, box_centre
+from datagen.world.route import Path, RoadNet, first_intersection, project, project_many
+from datagen.world.sumo import AgentReading, Leader, centre_xy
 
 _CROSSING = re.compile(r"_c\d+_\d+$")  # internal crossing lane ":<junction>_c<k>_<lane>"
 _WALKING_AREA = re.compile(r"_w\d+_\d+$")
@@ -147,25 +147,27 @@ def obstacles(
     sidewalk or walking area; the leader's gap gets back the ego vType's 1 m minGap.
     """
     pts, s = path.pts, path.s
-    ids, xy, yaw, spd, box, kerb_l = [], [], [], [], [], []
+    ids, xy, yaw, spd, length, width, is_ped, kerb_l = [], [], [], [], [], [], [], []
     for a in agents:
         d = dims(a.type_id)
-        kerb_l.append(d[3] == "pedestrian" and kerb(a.lane_id))
-        pose = box_centre(a.front_xy_m, a.yaw_rad, d[0])
+        ped = d[3] == "pedestrian"
         ids.append(a.agent_id)
-        xy.append((pose.x_m, pose.y_m))
-        yaw.append(pose.yaw_rad)
+        xy.append(centre_xy(a.front_xy_m, a.yaw_rad, d[0]))
+        yaw.append(a.yaw_rad)
         spd.append(a.speed_mps)
-        box.append(d)
+        length.append(d[0])
+        width.append(d[1])
+        is_ped.append(ped)
+        kerb_l.append(ped and kerb(a.lane_id))
     out = []
     half_w = 0.5 * EGO_DIMS_M[1]
     if ids:
         xy_a = np.asarray(xy)
         yaw_a = np.asarray(yaw)
         spd_a = np.asarray(spd)
-        length = np.array([d[0] for d in box])
-        width = np.array([d[1] for d in box])
-        is_ped = np.array([d[3] == "pedestrian" for d in box])
+        length = np.array(length)
+        width = np.array(width)
+        is_ped = np.array(is_ped)
         # People on a sidewalk or walking area count only where they will be (entering the
         # road), or where the car's swept body would touch them (below), not where they
         # stand: someone waiting at the kerb is not on the path, and yielding to them would
@@ -174,24 +176,36 @@ def obstacles(
         near = np.hypot(*(xy_a - pts[0]).T) < s[-1] + 15.0
         if near.any():
             k = np.flatnonzero(near)
-            # now, and for pedestrians also where they will be in 1 s and 2 s
-            horizons = (0.0, 1.0, 2.0)
-            for h in horizons:
-                if h == 0.0:
-                    sel = k[~kerb_a[k]]
-                elif ego_in_junction:
-                    # Inside a junction, never brake for someone still on the kerb: SUMO
-                    # granted our passage, and stopping in it invites a crossing car into
-                    # our side (one of the three ego collisions in a 160-episode run).
-                    sel = k[is_ped[k] & ~kerb_a[k] & (spd_a[k] > 0.2)]
-                else:
-                    sel = k[is_ped[k] & (spd_a[k] > 0.2)]
-                if len(sel) == 0:
-                    continue
-                p = xy_a[sel] + h * spd_a[sel, None] * np.stack(
-                    [np.cos(yaw_a[sel]), np.sin(yaw_a[sel])], 1
-                )
-                along, lat, head = project(p, pts, s)
+            # Now, and for pedestrians also where they will be in 1 s and 2 s (horizons); the
+            # sets are projected onto the path in one pass, with the people checked against
+            # the swept body below.
+            sels, pos = [], []
+            now = k[~kerb_a[k]]
+            if len(now):
+                sels.append(now)
+                pos.append(xy_a[now])  # at horizon 0 s: where they are
+            walking = is_ped[k] & (spd_a[k] > 0.2)
+            if ego_in_junction:
+                # Inside a junction, never brake for someone still on the kerb: SUMO
+                # granted our passage, and stopping in it invites a crossing car into
+                # our side (one of the three ego collisions in a 160-episode run).
+                walking &= ~kerb_a[k]
+            moving = k[walking]
+            if len(moving):
+                heading = np.stack([np.cos(yaw_a[moving]), np.sin(yaw_a[moving])], 1)
+                for h in (1.0, 2.0):
+                    sels.append(moving)
+                    pos.append(xy_a[moving] + h * spd_a[moving, None] * heading)
+            n_hit = sum(len(p) for p in pos)
+            peds = k[is_ped[k]]  # standing or walking, kerb included: for the swept body
+            if len(peds):
+                pos.append(xy_a[peds])
+            if pos:
+                along_all, lat_all, head_all = project_many(pos, pts, s, path.segments)
+            if n_hit:
+                sel = np.concatenate(sels) if len(sels) > 1 else sels[0]
+                p = np.concatenate(pos[: len(sels)]) if len(sels) > 1 else pos[0]
+                along, lat, head = along_all[:n_hit], lat_all[:n_hit], head_all[:n_hit]
                 rel = yaw_a[sel] - head
                 c, sn = np.abs(np.cos(rel)), np.abs(np.sin(rel))
                 across = 0.5 * length[sel] * sn + 0.5 * width[sel] * c
@@ -223,9 +237,8 @@ def obstacles(
                     v_along = max(0.0, float(spd_a[i] * np.cos(rel[j])))
                     out.append(expert.Obstacle(span[0], v_along, "vehicle", ids[i]))
             # people standing or walking, kerb included, against the body swept on turns
-            peds = k[is_ped[k]]
             if len(peds):
-                along, lat, _ = project(xy_a[peds], pts, s)
+                along, lat = along_all[n_hit:], lat_all[n_hit:]
                 ok = (lat < half_w + 2.0) & (along > -EGO_DIMS_M[0]) & (along < SWEEP_AHEAD_M)
                 cand = peds[ok]
                 if len(cand):

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import NamedTuple, Protocol
 
 import numpy as np
@@ -56,6 +57,13 @@ class Lane:
     pts: np.ndarray
     length_m: float
     speed_mps: float
+
+    @cached_property
+    def cum_m(self) -> np.ndarray:
+        """(N,) distance of each shape point from the first along the shape, m (computed once
+        per lane: the network is static)."""
+        seg = np.diff(self.pts, axis=0)
+        return np.concatenate([[0.0], np.cumsum(np.hypot(seg[:, 0], seg[:, 1]))])
 
 
 class Link(NamedTuple):
@@ -106,6 +114,11 @@ class Path:
     link_dist: tuple[float, ...]
     seg_lanes: tuple[tuple[float, str], ...]
 
+    @cached_property
+    def segments(self) -> Segments:
+        """The polyline's segments for `project` (computed once per path)."""
+        return segments(self.pts)
+
 
 @dataclass(frozen=True)
 class Signals:
@@ -127,8 +140,7 @@ class Signals:
 def cut(lane: Lane, pos_m: float) -> np.ndarray:
     """The lane's shape from `pos_m` (lane-length units) to its end: (K, 2)."""
     pts = lane.pts
-    seg = np.diff(pts, axis=0)
-    cum = np.concatenate([[0.0], np.cumsum(np.hypot(seg[:, 0], seg[:, 1]))])
+    cum = lane.cum_m
     target = pos_m * (cum[-1] / lane.length_m if lane.length_m > 0 else 1.0)
     i = int(np.searchsorted(cum, target, side="right"))
     if i >= len(pts):
@@ -139,30 +151,73 @@ def cut(lane: Lane, pos_m: float) -> np.ndarray:
     return np.vstack([start, pts[i:]])
 
 
+class Segments(NamedTuple):
+    """A polyline's M segments, as `project` needs them (world frame, m).
+
+    Attributes:
+        a: (M, 2) start points; d: (M, 2) vectors to the end points; seg_len: (M,) lengths;
+        l2: (M,) squared lengths, at least 1e-9; u: (2,) unit vector of the first segment;
+        normal: (2,) its left normal.
+    """
+
+    a: np.ndarray
+    d: np.ndarray
+    seg_len: np.ndarray
+    l2: np.ndarray
+    u: np.ndarray
+    normal: np.ndarray
+
+
+def segments(pts: np.ndarray) -> Segments:
+    """The segments of a (N, 2) polyline, N >= 2, for `project`."""
+    a = pts[:-1]
+    d = pts[1:] - a
+    seg_len = np.sqrt((d * d).sum(1))
+    l2 = np.maximum(seg_len * seg_len, 1e-9)
+    u = d[0] / max(seg_len[0], 1e-9)
+    return Segments(a, d, seg_len, l2, u, np.array([-u[1], u[0]]))
+
+
 def project(
-    xy: np.ndarray, pts: np.ndarray, s: np.ndarray
+    xy: np.ndarray, pts: np.ndarray, s: np.ndarray, segs: Segments | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Project (K, 2) points onto a polyline: along-path s (K,), unsigned lateral distance (K,)
-    and the path heading at the projection (K,), radians."""
-    a = pts[:-1]  # (M, 2)
-    d = pts[1:] - a  # (M, 2)
-    seg_len = np.sqrt((d * d).sum(1))  # (M,)
-    l2 = np.maximum(seg_len * seg_len, 1e-9)
+    and the path heading at the projection (K,), radians. `segs`: `segments(pts)`, where the
+    caller has it (Path.segments)."""
+    return project_many([xy], pts, s, segs)
+
+
+def project_many(
+    xys: Sequence[np.ndarray], pts: np.ndarray, s: np.ndarray, segs: Segments | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`project` of several (K_i, 2) point sets in one pass, rows in the order of the sets:
+    the same results, bit for bit, as one call per set (the products for points behind the
+    start are taken per set, as a matrix product's last bits depend on its shape)."""
+    a, d, seg_len, l2, u, normal = segs if segs is not None else segments(pts)
+    xy = np.concatenate(xys) if len(xys) > 1 else xys[0]
     rel = xy[:, None, :] - a[None]  # (K, M, 2)
     t = np.clip((rel * d[None]).sum(-1) / l2, 0.0, 1.0)  # (K, M)
     off = rel - t[..., None] * d[None]
     dist = np.sqrt((off * off).sum(-1))  # (K, M)
     idx = dist.argmin(1)
     k = np.arange(len(xy))
-    along = s[idx] + t[k, idx] * seg_len[idx]
-    # points beyond the ends: extend the first/last segment so "behind" gives negative s
+    t_at = t[k, idx]
+    along = s[idx] + t_at * seg_len[idx]
+    lat = dist[k, idx]
     heading = np.arctan2(d[idx, 1], d[idx, 0])
-    first = (idx == 0) & (t[k, idx] <= 0.0)
+    # points beyond the ends: extend the first/last segment so "behind" gives negative s
+    first = (idx == 0) & (t_at <= 0.0)
     if first.any():
-        u = d[0] / max(seg_len[0], 1e-9)
-        along[first] = s[0] + ((xy[first] - a[0]) @ u)
-        dist[k[first], 0] = np.abs((xy[first] - a[0]) @ np.array([-u[1], u[0]]))
-    return along, dist[k, idx], heading
+        lo = 0
+        for g in xys:
+            hi = lo + len(g)
+            f = first[lo:hi]
+            if f.any():
+                behind = g[f] - a[0]
+                along[lo:hi][f] = s[0] + (behind @ u)
+                lat[lo:hi][f] = np.abs(behind @ normal)
+            lo = hi
+    return along, lat, heading
 
 
 def first_intersection(

@@ -49,12 +49,17 @@ def sumo_angle(yaw_rad: float) -> float:
     return (90.0 - math.degrees(yaw_rad)) % 360.0
 
 
+def centre_xy(
+    front_xy_m: tuple[float, float], yaw_rad: float, length_m: float
+) -> tuple[float, float]:
+    """SUMO front-bumper position + yaw (CCW from east) -> box centre (x_m, y_m)."""
+    half = 0.5 * length_m
+    return front_xy_m[0] - half * math.cos(yaw_rad), front_xy_m[1] - half * math.sin(yaw_rad)
+
+
 def box_centre(front_xy_m: tuple[float, float], yaw_rad: float, length_m: float) -> Pose:
     """SUMO front-bumper position + yaw (CCW from east) -> box-centre Pose."""
-    half = 0.5 * length_m
-    return Pose(
-        front_xy_m[0] - half * math.cos(yaw_rad), front_xy_m[1] - half * math.sin(yaw_rad), yaw_rad
-    )
+    return Pose(*centre_xy(front_xy_m, yaw_rad, length_m), yaw_rad)
 
 
 # Readings are NamedTuples, not frozen dataclasses: ~50 are built every 0.1 s step and a
