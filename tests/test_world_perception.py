@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+import shapely
 
 from datagen.world import perception, route
 from datagen.world.fleet import EGO_DIMS_M
@@ -85,6 +86,48 @@ def test_corridor_span_of_an_aligned_box_is_its_length():
         pytest.approx(22.25),
     )
     assert perception.corridor_span(np.array([20.0, -3.2]), 0.0, 4.5, 1.8, PATH, 1.3) is None
+
+
+def _shapely_extent(corners, half_width_m):
+    inside = shapely.Polygon(corners).intersection(
+        shapely.box(-1e6, -half_width_m, 1e6, half_width_m)
+    )
+    return None if inside.is_empty else tuple(float(v) for v in inside.bounds[::2])
+
+
+def band_cases(n: int, seed: int = 0):
+    """Random boxes in a path's frame around a 1.275 m corridor, as corridor_span builds them:
+    aligned, skewed and across, some with a corner on the border."""
+    rng = np.random.default_rng(seed)
+    hw = 0.5 * EGO_DIMS_M[1] + 0.35
+    for k in range(n):
+        along0, lat0 = rng.uniform(-30.0, 120.0), rng.uniform(-6.0, 6.0)
+        rel = (0.0, math.pi, rng.normal(0.0, 0.05), rng.uniform(-math.pi, math.pi))[k % 4]
+        half_l, half_w = rng.choice([2.25, 2.45, 2.8, 4.25, 6.0, 0.85]), rng.uniform(0.3, 1.3)
+        c, sn = math.cos(rel), math.sin(rel)
+        corners = [
+            (along0 + dx * c - dy * sn, lat0 + dx * sn + dy * c)
+            for dx, dy in (
+                (half_l, half_w),
+                (half_l, -half_w),
+                (-half_l, -half_w),
+                (-half_l, half_w),
+            )
+        ]
+        if k % 7 == 0:  # move a corner onto the border
+            x, y = corners[0]
+            corners = [(cx, cy + hw - y) for cx, cy in corners]
+        yield corners, hw
+
+
+def test_band_extent_is_shapelys_bit_for_bit_where_it_is_sure():
+    n_sure = 0
+    for corners, hw in band_cases(4000):
+        sure, span = perception.band_extent(corners, hw)
+        if sure:
+            n_sure += 1
+            assert span == _shapely_extent(corners, hw)
+    assert n_sure > 2000  # the fast path is the common one
 
 
 def test_leader_gap_gets_back_the_ego_min_gap():

@@ -32,6 +32,9 @@ SWEEP_STEP_M = 0.5
 SWEEP_AHEAD_M = 40.0
 STOP_FOE_M = 3.0  # a vehicle standing this close to a stop line it must obey is a junction foe
 VEHICLE_MARGIN_M = 0.35  # a vehicle's box this close to the ego's corridor is on its path
+# band_extent trusts a corner as the extreme only this far from the band's border and from
+# every border crossing (GEOS's crossings are exact to ~1e-9 m at the coordinates used here)
+BAND_SURE_M = 1e-6
 
 
 def is_kerb(lane_id: str, allowed: tuple[str, ...] | None) -> bool:
@@ -122,6 +125,9 @@ def corridor_span(
         (along0 + dx * c - dy * sn, lat0 + dx * sn + dy * c)
         for dx, dy in ((half_l, half_w), (half_l, -half_w), (-half_l, -half_w), (-half_l, half_w))
     ]
+    sure, span = band_extent(corners, half_width_m)
+    if sure:
+        return span
     inside = shapely.Polygon(corners).intersection(
         shapely.box(-1e6, -half_width_m, 1e6, half_width_m)
     )
@@ -129,6 +135,43 @@ def corridor_span(
         return None
     lo, _, hi, _ = inside.bounds
     return float(lo), float(hi)
+
+
+def band_extent(
+    corners: Sequence[tuple[float, float]], half_width_m: float
+) -> tuple[bool, tuple[float, float] | None]:
+    """(sure, span): the x extent (lo, hi) of the part of a convex polygon (corners (x, y), m)
+    within |y| <= `half_width_m`, or None if no part is, where that follows without computing
+    where an edge crosses the band's border; sure is False otherwise.
+
+    Exactly what shapely's intersection with the band and its bounds give (`corridor_span`'s
+    slow path): the extent is then a corner's own x. The polygon's vertices inside the band are
+    its corners there plus the border crossings; a crossing only has to be approximate here to
+    tell that it is not an extreme, as GEOS computes it to far better than BAND_SURE_M."""
+    inside = []
+    above = below = False
+    for x, y in corners:
+        if abs(y) < half_width_m - BAND_SURE_M:
+            inside.append(x)
+        elif y > half_width_m + BAND_SURE_M:
+            above = True
+        elif y < -half_width_m - BAND_SURE_M:
+            below = True
+        else:
+            return False, None  # a corner on (or too near) the border
+    if not inside:
+        return (True, None) if not (above and below) else (False, None)
+    lo, hi = min(inside), max(inside)
+    if len(inside) < len(corners):
+        n = len(corners)
+        for k in range(n):
+            (x0, y0), (x1, y1) = corners[k], corners[(k + 1) % n]
+            for border in (half_width_m, -half_width_m):
+                if (y0 - border) * (y1 - border) < 0.0:
+                    x = x0 + (border - y0) * (x1 - x0) / (y1 - y0)
+                    if not lo + BAND_SURE_M < x < hi - BAND_SURE_M:
+                        return False, None  # a crossing is (or may be) the extreme
+    return True, (float(lo), float(hi))
 
 
 def obstacles(
