@@ -273,3 +273,20 @@ def test_a_car_standing_at_a_stop_line_is_a_foe_only_where_the_lane_has_a_stop_s
     assert perception.foe_eta_s(no_sign, Junction(), "J", "own", stop_lanes) is None
     inside = [_car(0.0, 0.0, 0.0, 0.0, lane=":J_4_0")]  # standing inside: as before, not
     assert perception.foe_eta_s(inside, Junction(), "J", "own", stop_lanes) is None
+
+
+def test_side_of_the_path_has_numpys_sign_also_right_beside_it():
+    rng = np.random.default_rng(1)
+    for _ in range(500):
+        pts = np.cumsum(rng.normal(0.0, 10.0, (int(rng.integers(2, 10)), 2)), 0) + 300.0
+        seg = np.diff(pts, axis=0)
+        s = np.concatenate([[0.0], np.cumsum(np.hypot(seg[:, 0], seg[:, 1]))])
+        path = route.Path(pts, s, (), ())
+        xy = pts[0] + rng.normal(0.0, 30.0, (6, 2))
+        xy[0] = pts[int(rng.integers(0, len(pts)))] + rng.normal(0.0, 1e-7, 2)  # on the path
+        along, _, head = route.project(xy, pts, s)
+        for q, a, h in zip(xy, along, head):
+            at = np.array([np.interp(a, s, pts[:, 0]), np.interp(a, s, pts[:, 1])])
+            exact = float((q - at) @ np.array([-math.sin(h), math.cos(h)]))
+            side = perception._side(q, float(a), float(h), path)
+            assert math.copysign(1.0, side) == math.copysign(1.0, exact)

@@ -113,11 +113,7 @@ def corridor_span(
         along, lat, head = project(xy[None], path.pts, path.s)
         projection = (float(along[0]), float(lat[0]), float(head[0]))
     along0, lat, h = projection
-    at = np.array(
-        [np.interp(along0, path.s, path.pts[:, 0]), np.interp(along0, path.s, path.pts[:, 1])]
-    )
-    side = float((xy - at) @ np.array([-math.sin(h), math.cos(h)]))  # left of the path > 0
-    lat0 = math.copysign(lat, side)
+    lat0 = math.copysign(lat, _side(xy, along0, h, path))
     rel = yaw_rad - h
     c, sn = math.cos(rel), math.sin(rel)
     half_l, half_w = 0.5 * length_m, 0.5 * width_m
@@ -135,6 +131,24 @@ def corridor_span(
         return None
     lo, _, hi, _ = inside.bounds
     return float(lo), float(hi)
+
+
+def _side(xy: np.ndarray, along0: float, h: float, path: Path) -> float:
+    """Which side of `path` the point `xy` (2,) lies on, as a number whose sign says it (left
+    > 0): (xy - the path point at `along0`) . the left normal at heading `h`, m.
+
+    The sign is what counts, and it is numpy's (np.interp, a dot product) bit for bit: scalar
+    arithmetic decides it unless the point is within BAND_SURE_M of the path."""
+    s, pts = path.s, path.pts
+    j = min(max(int(np.searchsorted(s, along0)), 1), len(s) - 1)
+    x0, y0, x1, y1 = pts[j - 1, 0], pts[j - 1, 1], pts[j, 0], pts[j, 1]
+    f = min(max((along0 - s[j - 1]) / max(s[j] - s[j - 1], 1e-9), 0.0), 1.0)
+    nx, ny = -math.sin(h), math.cos(h)
+    side = (xy[0] - (x0 + f * (x1 - x0))) * nx + (xy[1] - (y0 + f * (y1 - y0))) * ny
+    if abs(side) > BAND_SURE_M:
+        return float(side)
+    at = np.array([np.interp(along0, s, pts[:, 0]), np.interp(along0, s, pts[:, 1])])
+    return float((xy - at) @ np.array([nx, ny]))
 
 
 def band_extent(
@@ -235,10 +249,13 @@ def obstacles(
                 walking &= ~kerb_a[k]
             moving = k[walking]
             if len(moving):
-                heading = np.stack([np.cos(yaw_a[moving]), np.sin(yaw_a[moving])], 1)
+                heading = np.empty((len(moving), 2))  # unit vectors, (n, 2)
+                heading[:, 0] = np.cos(yaw_a[moving])
+                heading[:, 1] = np.sin(yaw_a[moving])
+                xy_m, spd_m = xy_a[moving], spd_a[moving, None]
                 for h in (1.0, 2.0):
                     sels.append(moving)
-                    pos.append(xy_a[moving] + h * spd_a[moving, None] * heading)
+                    pos.append(xy_m + h * spd_m * heading)
             n_hit = sum(len(p) for p in pos)
             peds = k[is_ped[k]]  # standing or walking, kerb included: for the swept body
             if len(peds):
@@ -251,8 +268,9 @@ def obstacles(
                 along, lat, head = along_all[:n_hit], lat_all[:n_hit], head_all[:n_hit]
                 rel = yaw_a[sel] - head
                 c, sn = np.abs(np.cos(rel)), np.abs(np.sin(rel))
-                across = 0.5 * length[sel] * sn + 0.5 * width[sel] * c
-                ahead = 0.5 * length[sel] * c + 0.5 * width[sel] * sn
+                half_l, half_wd = 0.5 * length[sel], 0.5 * width[sel]
+                across = half_l * sn + half_wd * c
+                ahead = half_l * c + half_wd * sn
                 margin = np.where(is_ped[sel], np.where(kerb_a[sel], 0.0, 0.8), VEHICLE_MARGIN_M)
                 hit = (lat - across < half_w + margin) & (along + ahead > 0.0)
                 hit &= along - ahead < s[-1]
