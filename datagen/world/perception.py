@@ -360,15 +360,18 @@ def crossing_obstacles(
             lane, on = a.next_edge + "_0", False
         else:
             continue
-        c = net.lane(lane).pts
+        crossing = net.lane(lane)
+        c = crossing.pts
         if len(c) < 2:
             continue
         hit = first_intersection(path.pts, path.s, c)
         if hit is None or hit[0] < 0.0:
             continue
         s_x, u_x = hit
-        c_s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(c, axis=0).T))])
-        u_p, lat, head = project(np.asarray([a.front_xy_m], dtype=np.float64), c, c_s)
+        c_s = crossing.cum_m
+        u_p, lat, head = project(
+            np.asarray([a.front_xy_m], dtype=np.float64), c, c_s, crossing.segments
+        )
         u_p = float(u_p[0])
         if on:
             if a.speed_mps < 0.2:

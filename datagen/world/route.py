@@ -65,6 +65,11 @@ class Lane:
         seg = np.diff(self.pts, axis=0)
         return np.concatenate([[0.0], np.cumsum(np.hypot(seg[:, 0], seg[:, 1]))])
 
+    @cached_property
+    def segments(self) -> Segments:
+        """The shape's segments for `project` (computed once per lane; N >= 2 points)."""
+        return segments(self.pts)
+
 
 class Link(NamedTuple):
     """One link from a lane to the next (a libsumo link tuple, named).
@@ -147,8 +152,9 @@ def cut(lane: Lane, pos_m: float) -> np.ndarray:
         return pts[-1:]
     i = max(i, 1)
     f = (target - cum[i - 1]) / max(cum[i] - cum[i - 1], 1e-9)
-    start = pts[i - 1] + f * (pts[i] - pts[i - 1])
-    return np.vstack([start, pts[i:]])
+    out = pts[i - 1 :].copy()
+    out[0] = pts[i - 1] + f * (pts[i] - pts[i - 1])
+    return out
 
 
 class Segments(NamedTuple):
@@ -325,14 +331,19 @@ def path_ahead(
         dist += net.lane(link.lane_id).length_m
         pieces.append(net.lane(link.lane_id).pts)
     pts = np.concatenate(pieces)
-    step = np.diff(pts, axis=0)
-    keep = np.concatenate([[True], np.hypot(step[:, 0], step[:, 1]) > 0.2])
-    pts = pts[keep]
+    step = pts[1:] - pts[:-1]
+    step_len = np.hypot(step[:, 0], step[:, 1])
+    keep = step_len > 0.2
+    if not keep.all():  # drop points within 0.2 m of the one before (where pieces join)
+        pts = pts[np.concatenate([[True], keep])]
+        step = pts[1:] - pts[:-1]
+        step_len = np.hypot(step[:, 0], step[:, 1])
     if len(pts) < 2:
         x, y = front_xy_m
         pts = np.array([[x, y], [x + math.cos(yaw_rad), y + math.sin(yaw_rad)]])
-    seg = np.diff(pts, axis=0)
-    s = np.concatenate([[0.0], np.cumsum(np.hypot(seg[:, 0], seg[:, 1]))])
+        step = pts[1:] - pts[:-1]
+        step_len = np.hypot(step[:, 0], step[:, 1])
+    s = np.concatenate([[0.0], np.cumsum(step_len)])
     return Path(pts, s, tuple(link_dist), tuple(seg_lanes))
 
 

@@ -431,12 +431,13 @@ class Sumo:
             ls.VAR_LANE_ID,
             ls.VAR_NEXT_EDGE,
         )
+        yaw = yaw_from_sumo
         agents = tuple(
-            AgentReading(
-                aid, a[typ], a[pos], yaw_from_sumo(a[ang]), a[spd], a[lane], a.get(nxt, "")
-            )
-            for aid, a in ls.vehicle.getContextSubscriptionResults(EGO_ID).items()
-            if aid != EGO_ID
+            [
+                AgentReading(aid, a[typ], a[pos], yaw(a[ang]), a[spd], a[lane], a.get(nxt, ""))
+                for aid, a in ls.vehicle.getContextSubscriptionResults(EGO_ID).items()
+                if aid != EGO_ID
+            ]
         )
         on_lane = ego.lane_id != ""
         links = (
