@@ -4,6 +4,7 @@ the ego's front bumper)."""
 
 from __future__ import annotations
 
+import bisect
 import math
 import re
 from collections.abc import Callable, Sequence
@@ -113,14 +114,31 @@ def corridor_span(
         along, lat, head = project(xy[None], path.pts, path.s)
         projection = (float(along[0]), float(lat[0]), float(head[0]))
     along0, lat, h = projection
-    lat0 = math.copysign(lat, _side(xy, along0, h, path))
     rel = yaw_rad - h
     c, sn = math.cos(rel), math.sin(rel)
     half_l, half_w = 0.5 * length_m, 0.5 * width_m
-    corners = [
-        (along0 + dx * c - dy * sn, lat0 + dx * sn + dy * c)
-        for dx, dy in ((half_l, half_w), (half_l, -half_w), (-half_l, -half_w), (-half_l, half_w))
-    ]
+
+    def box(lat0: float) -> list[tuple[float, float]]:
+        """The box's corners (along, lateral) with its centre `lat0` left of the path."""
+        return [
+            (along0 + dx * c - dy * sn, lat0 + dx * sn + dy * c)
+            for dx, dy in (
+                (half_l, half_w),
+                (half_l, -half_w),
+                (-half_l, -half_w),
+                (-half_l, half_w),
+            )
+        ]
+
+    side = _side(xy, along0, h, path)
+    if abs(side) <= BAND_SURE_M:
+        # a vehicle on the lane line (most in the ego's lane): if either side gives the same
+        # extent, the sign does not matter; else take numpy's exact sign
+        sure, span = band_extent(box(lat), half_width_m)
+        if sure and band_extent(box(-lat), half_width_m) == (True, span):
+            return span
+        side = _exact_side(xy, along0, h, path)
+    corners = box(math.copysign(lat, side))
     sure, span = band_extent(corners, half_width_m)
     if sure:
         return span
@@ -137,18 +155,21 @@ def _side(xy: np.ndarray, along0: float, h: float, path: Path) -> float:
     """Which side of `path` the point `xy` (2,) lies on, as a number whose sign says it (left
     > 0): (xy - the path point at `along0`) . the left normal at heading `h`, m.
 
-    The sign is what counts, and it is numpy's (np.interp, a dot product) bit for bit: scalar
-    arithmetic decides it unless the point is within BAND_SURE_M of the path."""
+    Scalar arithmetic: the sign is that of `_exact_side` (numpy's, as corridor_span always
+    took it) wherever the result is more than BAND_SURE_M from 0."""
     s, pts = path.s, path.pts
-    j = min(max(int(np.searchsorted(s, along0)), 1), len(s) - 1)
+    j = min(max(bisect.bisect_left(s, along0), 1), len(s) - 1)
     x0, y0, x1, y1 = pts[j - 1, 0], pts[j - 1, 1], pts[j, 0], pts[j, 1]
     f = min(max((along0 - s[j - 1]) / max(s[j] - s[j - 1], 1e-9), 0.0), 1.0)
     nx, ny = -math.sin(h), math.cos(h)
-    side = (xy[0] - (x0 + f * (x1 - x0))) * nx + (xy[1] - (y0 + f * (y1 - y0))) * ny
-    if abs(side) > BAND_SURE_M:
-        return float(side)
+    return float((xy[0] - (x0 + f * (x1 - x0))) * nx + (xy[1] - (y0 + f * (y1 - y0))) * ny)
+
+
+def _exact_side(xy: np.ndarray, along0: float, h: float, path: Path) -> float:
+    """`_side` with numpy (np.interp, a dot product): the sign corridor_span has always used."""
+    s, pts = path.s, path.pts
     at = np.array([np.interp(along0, s, pts[:, 0]), np.interp(along0, s, pts[:, 1])])
-    return float((xy - at) @ np.array([nx, ny]))
+    return float((xy - at) @ np.array([-math.sin(h), math.cos(h)]))
 
 
 def band_extent(
