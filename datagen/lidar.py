@@ -136,53 +136,20 @@ class Lidar:
 
     def actor_rays(self, scene: FrameScene, origin: np.ndarray, yaw_rad: float) -> np.ndarray:
         """Indices of the rays that can hit an agent: the union over the agents of the beams x
-        azimuth steps spanned by the agent's box (5 cm margin) seen from the sensor.
-
-        Azimuths: the box's footprint corners (a convex polygon seen from outside spans the
-        angles of its vertices). Elevations: the box's bottom and top at its nearest and
-        farthest horizontal distance from the sensor."""
+        azimuth steps spanned by the agent's box (5 cm margin) seen from the sensor at
+        `origin` (3,) float64, world frame (`_actor_window`)."""
         cfg = self.config
-        n_az = cfg.azimuth_steps
-        up, lo = math.radians(cfg.upper_fov_deg), math.radians(cfg.lower_fov_deg)
-        el_step = (up - lo) / max(cfg.channels - 1, 1)
-        az_step = 2 * math.pi / n_az
-        ox, oy, oz = (float(v) for v in origin)
-        mask = np.zeros((cfg.channels, n_az), bool)
-        signs = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]], np.float64)
-        for a in scene.agents:
-            c, s = math.cos(a.pose.yaw_rad), math.sin(a.pose.yaw_rad)
-            hl, hw = a.length_m / 2 + 0.05, a.width_m / 2 + 0.05
-            dx, dy = ox - a.pose.x_m, oy - a.pose.y_m
-            u, v = c * dx + s * dy, -s * dx + c * dy  # the sensor in the box's frame
-            d_min = math.hypot(max(abs(u) - hl, 0.0), max(abs(v) - hw, 0.0))
-            local = signs * (hl, hw)
-            rel = np.stack(
-                [
-                    a.pose.x_m + c * local[:, 0] - s * local[:, 1] - ox,
-                    a.pose.y_m + s * local[:, 0] + c * local[:, 1] - oy,
-                ],
-                1,
-            )
-            d_max = float(np.hypot(rel[:, 0], rel[:, 1]).max())
-            z_lo, z_hi = -0.05 - oz, a.height_m + 0.05 - oz
-            el_lo = math.atan2(z_lo, d_min if z_lo < 0 else d_max)
-            el_hi = math.atan2(z_hi, d_min if z_hi > 0 else d_max)
-            k0 = max(math.ceil((up - el_hi) / el_step), 0)
-            k1 = min(math.floor((up - el_lo) / el_step), cfg.channels - 1)
-            if k1 < k0:
-                continue
-            if d_min == 0.0:  # the sensor is over the box: every azimuth
-                mask[k0 : k1 + 1] = True
-                continue
-            mid = math.atan2(-dy, -dx)
-            ang = np.arctan2(rel[:, 1], rel[:, 0])
-            diff = (ang - mid + math.pi) % (2 * math.pi) - math.pi
-            a0 = mid + diff.min() - yaw_rad + math.pi  # from the -pi ray
-            a1 = mid + diff.max() - yaw_rad + math.pi
-            j0, j1 = math.ceil(a0 / az_step), math.floor(a1 / az_step)
-            if j1 < j0:
-                continue
-            mask[k0 : k1 + 1, np.arange(j0, j1 + 1) % n_az] = True
+        mask = np.zeros((cfg.channels, cfg.azimuth_steps), np.bool_)
+        _actor_window(
+            scene.actor_boxes,
+            float(origin[0]),
+            float(origin[1]),
+            float(origin[2]),
+            yaw_rad,
+            math.radians(cfg.upper_fov_deg),
+            math.radians(cfg.lower_fov_deg),
+            mask,
+        )
         return np.flatnonzero(mask)
 
     def sweep(
@@ -211,6 +178,51 @@ class Lidar:
         counts = np.bincount(actor[actor >= 0], minlength=len(scene.agents))
         hits = {scene.agents[a].track_id: int(c) for a, c in enumerate(counts) if c}
         return Sweep(points_m=points, actor_hits=hits, pose=pose)
+
+
+@numba.njit(cache=True, nogil=True)
+def _actor_window(boxes, ox, oy, oz, yaw_rad, up, lo, mask):
+    """Set mask[beam, azimuth step] ((channels, steps) bool, in place) for every ray that can
+    hit one of the boxes ((A, 6) float64 x, y, yaw, length, width, height; world frame, m,
+    rad) from the sensor at (ox, oy, oz), its azimuth steps counted from the -pi ray of the
+    ego at `yaw_rad`; beams run from elevation `up` down to `lo` (rad). 5 cm margin.
+
+    Azimuths: the box's footprint corners (a convex polygon seen from outside spans the angles
+    of its vertices). Elevations: the box's bottom and top at its nearest and farthest
+    horizontal distance from the sensor."""
+    channels, n_az = mask.shape
+    el_step = (up - lo) / max(channels - 1, 1)
+    az_step = 2 * math.pi / n_az
+    for b in range(len(boxes)):
+        x, y, yaw, length, width, height = boxes[b]
+        c, s = math.cos(yaw), math.sin(yaw)
+        hl, hw = length / 2 + 0.05, width / 2 + 0.05
+        dx, dy = ox - x, oy - y
+        u, v = c * dx + s * dy, -s * dx + c * dy  # the sensor in the box's frame
+        d_min = math.hypot(max(abs(u) - hl, 0.0), max(abs(v) - hw, 0.0))
+        mid = math.atan2(-dy, -dx)
+        d_max, lo_diff, hi_diff = 0.0, math.inf, -math.inf
+        for su, sv in ((1.0, 1.0), (1.0, -1.0), (-1.0, -1.0), (-1.0, 1.0)):
+            rx = x + c * (su * hl) - s * (sv * hw) - ox
+            ry = y + s * (su * hl) + c * (sv * hw) - oy
+            d_max = max(d_max, math.hypot(rx, ry))
+            diff = (math.atan2(ry, rx) - mid + math.pi) % (2 * math.pi) - math.pi
+            lo_diff, hi_diff = min(lo_diff, diff), max(hi_diff, diff)
+        z_lo, z_hi = -0.05 - oz, height + 0.05 - oz
+        el_lo = math.atan2(z_lo, d_min if z_lo < 0 else d_max)
+        el_hi = math.atan2(z_hi, d_min if z_hi > 0 else d_max)
+        k0 = max(math.ceil((up - el_hi) / el_step), 0)
+        k1 = min(math.floor((up - el_lo) / el_step), channels - 1)
+        if k1 < k0:
+            continue
+        if d_min == 0.0:  # the sensor is over the box: every azimuth
+            mask[k0 : k1 + 1] = True
+            continue
+        a0 = mid + lo_diff - yaw_rad + math.pi  # from the -pi ray
+        a1 = mid + hi_diff - yaw_rad + math.pi
+        j0, j1 = math.ceil(a0 / az_step), math.floor(a1 / az_step)
+        for j in range(j0, j1 + 1):
+            mask[k0 : k1 + 1, j % n_az] = True
 
 
 @numba.njit(cache=True, nogil=True)

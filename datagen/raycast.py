@@ -79,6 +79,8 @@ class FrameScene:
         agents: the agents in the actor scene, in actor-index order.
         actor_centres_m: (A, 3) float64 world centres of the agents' bounding spheres.
         actor_radii_m: (A,) float64 their radii (half the box diagonal).
+        actor_boxes: (A, 6) float64 the agents' boxes: x, y (centre, m), yaw (rad), length,
+            width, height (m).
         ray_log: if a list, every Embree call appends (scene, query, origins, directions,
             dists) to it (bench/frame.py replays them as bare Embree calls).
     """
@@ -94,6 +96,7 @@ class FrameScene:
     agents: tuple[AgentState, ...]
     actor_centres_m: np.ndarray
     actor_radii_m: np.ndarray
+    actor_boxes: np.ndarray
     ray_log: list | None = None
 
     def actor_of(self, prim: np.ndarray) -> np.ndarray:
@@ -289,12 +292,15 @@ class SceneBuilder:
             if math.hypot(a.pose.x_m - ex, a.pose.y_m - ey) <= self.reach_m + a.length_m
         )
         actors = actor_mesh(agents)
-        centres = np.array(
-            [(a.pose.x_m, a.pose.y_m, a.height_m / 2) for a in agents], np.float64
-        ).reshape(-1, 3)
-        radii = np.array(
-            [0.5 * math.sqrt(a.length_m**2 + a.width_m**2 + a.height_m**2) for a in agents]
-        )
+        boxes = np.array(
+            [
+                (a.pose.x_m, a.pose.y_m, a.pose.yaw_rad, a.length_m, a.width_m, a.height_m)
+                for a in agents
+            ],
+            np.float64,
+        ).reshape(-1, 6)
+        centres = np.stack([boxes[:, 0], boxes[:, 1], boxes[:, 5] / 2], 1)
+        radii = 0.5 * np.sqrt(boxes[:, 3] ** 2 + boxes[:, 4] ** 2 + boxes[:, 5] ** 2)
         return FrameScene(
             static_embree=embree,
             actor_embree=_embree_scene(actors.triangles_m) if len(actors.triangles_m) else None,
@@ -307,6 +313,7 @@ class SceneBuilder:
             agents=agents,
             actor_centres_m=centres,
             actor_radii_m=radii,
+            actor_boxes=boxes,
         )
 
 
