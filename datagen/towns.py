@@ -26,6 +26,7 @@ version gives byte-identical networks (and the same `network_sha256`).
 from __future__ import annotations
 
 import argparse
+import functools
 import gzip
 import hashlib
 import math
@@ -681,7 +682,14 @@ def check_network(path: Path) -> Path:
 
 
 def network_sha256(path: Path) -> str:
-    """sha256 of the network file's bytes, as stored (hex)."""
+    """sha256 of the network file's bytes, as stored (hex). Kept per process for a file whose
+    size and modification time are unchanged (every episode asks twice)."""
+    st = os.stat(path)
+    return _file_sha256(str(Path(path).resolve()), st.st_size, st.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=64)
+def _file_sha256(path: str, size: int, mtime_ns: int) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for chunk in iter(lambda: f.read(1 << 20), b""):
