@@ -5,11 +5,11 @@ Mounted as TransFuser's CARLA camera: 1.3 m ahead of the ego's box centre, 2.3 m
 ground, looking straight ahead (no pitch). Only the crop is cast (65,536 rays); its horizontal
 and vertical field of view is 2 * atan(128 / f) = 74.6 degrees with f = 200 / tan(50 deg).
 
-Shading (per pixel, numpy): base colour of the triangle hit x (ambient + sun * max(0, n.s) *
-shadow), with shadow rays towards the sun in sunny weather; building walls get a procedural
-window grid; every traffic-light head glows with the real state of its own light's links,
-whether or not that light governs the ego (`lit_slots`); rays that hit nothing within
-`range_m` see the sky.
+Shading (per pixel, in compiled passes: datagen/shading.py): base colour of the triangle hit x
+(ambient + sun * max(0, n.s) * shadow), with shadow rays towards the sun in sunny weather;
+building walls get a procedural window grid; every traffic-light head glows with the real state
+of its own light's links, whether or not that light governs the ego (`lit_slots`); rays that
+hit nothing within `range_m` see the sky.
 Then the weather (CAMERA_WEATHER):
 
 - sunny: blue sky, strong sun with shadows, faint haze far away;
