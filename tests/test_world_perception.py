@@ -104,16 +104,7 @@ def band_cases(n: int, seed: int = 0):
         along0, lat0 = rng.uniform(-30.0, 120.0), rng.uniform(-6.0, 6.0)
         rel = (0.0, math.pi, rng.normal(0.0, 0.05), rng.uniform(-math.pi, math.pi))[k % 4]
         half_l, half_w = rng.choice([2.25, 2.45, 2.8, 4.25, 6.0, 0.85]), rng.uniform(0.3, 1.3)
-        c, sn = math.cos(rel), math.sin(rel)
-        corners = [
-            (along0 + dx * c - dy * sn, lat0 + dx * sn + dy * c)
-            for dx, dy in (
-                (half_l, half_w),
-                (half_l, -half_w),
-                (-half_l, -half_w),
-                (-half_l, half_w),
-            )
-        ]
+        corners = perception.path_box(along0, lat0, rel, half_l, half_w)
         if k % 7 == 0:  # move a corner onto the border
             x, y = corners[0]
             corners = [(cx, cy + hw - y) for cx, cy in corners]

@@ -115,20 +115,10 @@ def corridor_span(
         projection = (float(along[0]), float(lat[0]), float(head[0]))
     along0, lat, h = projection
     rel = yaw_rad - h
-    c, sn = math.cos(rel), math.sin(rel)
     half_l, half_w = 0.5 * length_m, 0.5 * width_m
 
     def box(lat0: float) -> list[tuple[float, float]]:
-        """The box's corners (along, lateral) with its centre `lat0` left of the path."""
-        return [
-            (along0 + dx * c - dy * sn, lat0 + dx * sn + dy * c)
-            for dx, dy in (
-                (half_l, half_w),
-                (half_l, -half_w),
-                (-half_l, -half_w),
-                (-half_l, half_w),
-            )
-        ]
+        return path_box(along0, lat0, rel, half_l, half_w)
 
     side = _side(xy, along0, h, path)
     if abs(side) <= BAND_SURE_M:
@@ -149,6 +139,24 @@ def corridor_span(
         return None
     lo, _, hi, _ = inside.bounds
     return float(lo), float(hi)
+
+
+def path_box(
+    along_m: float, lat_m: float, rel_rad: float, half_l_m: float, half_w_m: float
+) -> list[tuple[float, float]]:
+    """Corners (along, lateral) of a box in a path's frame: centre `along_m` along the path and
+    `lat_m` left of it, heading `rel_rad` relative to the path, half extents in m; front-left,
+    front-right, rear-right, rear-left."""
+    c, sn = math.cos(rel_rad), math.sin(rel_rad)
+    return [
+        (along_m + dx * c - dy * sn, lat_m + dx * sn + dy * c)
+        for dx, dy in (
+            (half_l_m, half_w_m),
+            (half_l_m, -half_w_m),
+            (-half_l_m, -half_w_m),
+            (-half_l_m, half_w_m),
+        )
+    ]
 
 
 def _side(xy: np.ndarray, along0: float, h: float, path: Path) -> float:
