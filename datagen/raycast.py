@@ -29,6 +29,7 @@ import math
 import weakref
 from collections import OrderedDict
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -77,10 +78,9 @@ class FrameScene:
         actors: this frame's actor triangles (ActorMesh; its `actor` is the agent index).
         n_static: the first n_static primitives are static (S).
         agents: the agents in the actor scene, in actor-index order.
-        actor_centres_m: (A, 3) float64 world centres of the agents' bounding spheres.
-        actor_radii_m: (A,) float64 their radii (half the box diagonal).
         actor_boxes: (A, 6) float64 the agents' boxes: x, y (centre, m), yaw (rad), length,
-            width, height (m).
+            width, height (m); `actor_centres_m` and `actor_radii_m` derive their bounding
+            spheres.
         ray_log: if a list, every Embree call appends (scene, query, origins, directions,
             dists) to it (bench/frame.py replays them as bare Embree calls).
     """
@@ -94,10 +94,20 @@ class FrameScene:
     actors: ActorMesh
     n_static: int
     agents: tuple[AgentState, ...]
-    actor_centres_m: np.ndarray
-    actor_radii_m: np.ndarray
     actor_boxes: np.ndarray
     ray_log: list | None = None
+
+    @cached_property
+    def actor_centres_m(self) -> np.ndarray:
+        """(A, 3) float64 world centres of the agents' bounding spheres (half their height)."""
+        b = self.actor_boxes
+        return np.stack([b[:, 0], b[:, 1], b[:, 5] / 2], 1)
+
+    @cached_property
+    def actor_radii_m(self) -> np.ndarray:
+        """(A,) float64 radii of the agents' bounding spheres (half the box diagonal), m."""
+        b = self.actor_boxes
+        return 0.5 * np.sqrt(b[:, 3] ** 2 + b[:, 4] ** 2 + b[:, 5] ** 2)
 
     def actor_of(self, prim: np.ndarray) -> np.ndarray:
         """(n,) int32 index into `agents` of each primitive's agent; -1 static or no hit."""
@@ -299,8 +309,6 @@ class SceneBuilder:
             ],
             np.float64,
         ).reshape(-1, 6)
-        centres = np.stack([boxes[:, 0], boxes[:, 1], boxes[:, 5] / 2], 1)
-        radii = 0.5 * np.sqrt(boxes[:, 3] ** 2 + boxes[:, 4] ** 2 + boxes[:, 5] ** 2)
         return FrameScene(
             static_embree=embree,
             actor_embree=_embree_scene(actors.triangles_m) if len(actors.triangles_m) else None,
@@ -311,8 +319,6 @@ class SceneBuilder:
             actors=actors,
             n_static=len(normals),
             agents=agents,
-            actor_centres_m=centres,
-            actor_radii_m=radii,
             actor_boxes=boxes,
         )
 
