@@ -5,7 +5,7 @@ bare-Embree limit measured in the same run; prints figures, asserts nothing.
     .venv/bin/python bench/build.py --long-frames 2880 --towns 8 --executor ray
 
 The limit: bench/frame.py's `measure()` casts one town's frames and replays the very same rays
-as bare embreex calls; `workers * 1000 / bare_ms` frames/s is what the ray caster alone allows,
+as bare Embree queries (datagen/embree.py); `workers * 1000 / bare_ms` frames/s is what the ray caster alone allows,
 and each build's end-to-end frames/s is reported as a share of it (same run, same load: the
 machine is shared, so compare ratios, not absolute figures). Per build: frames/s end to end
 (town preparation excluded: towns are cached after the first build), the stage breakdown summed

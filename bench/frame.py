@@ -9,8 +9,8 @@ boxes + Embree commit; the town's static scene is committed once per process), l
 3-sweep BEV counts), camera, labels (BEV semantic raster, boxes, waypoints), encode (JPEG +
 PNGs). Prints the median ms per stage (wall and CPU time: the machine is shared, CPU time is the
 steadier figure), the rays per second achieved by the two sensor stages, and the limit: the very
-same rays (LiDAR, camera, shadow rays; logged per frame) cast again by bare embreex `scene.run`
-calls on the same committed scene, and the ratio of the two in the same run (issue 12: sensors
+same rays (LiDAR, camera, shadow rays; logged per frame) cast again by bare Embree queries
+(datagen/embree.py) on the same committed scene, and the ratio of the two in the same run (issue 12: sensors
 within 1.3x of bare Embree). `measure()` is also what bench/build.py calls for its limit.
 """
 
@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from datagen import episode, labels, lidar  # noqa: E402
+from datagen import episode, labels, lidar, raycast  # noqa: E402
 from datagen.scene import load_static_scene  # noqa: E402
 from datagen.towns import town_net_path  # noqa: E402
 from datagen.world import World, WorldConfig  # noqa: E402
@@ -102,16 +102,16 @@ def measure(
                 cpu[name].append(c)
             stages["total"].append(sim + t6 - t1)
             cpu["total"].append(sim_cpu + c6 - c1)
-            # The same rays, bare: one embreex call per logged cast, primary ids only.
+            # The same rays, bare: one Embree query per logged cast (datagen/embree.py).
             tb, cb = time.perf_counter(), time.process_time()
-            for emb, query, o, d, dists in scene.ray_log:
-                emb.run(o, d, dists=dists, query=query)
+            for query, emb, o, d, tfar in scene.ray_log:
+                raycast.QUERIES[query](emb, o, d, tfar)
             bare_s.append(time.perf_counter() - tb)
             bare_cpu.append(time.process_time() - cb)
             sensor_s.append(t4 - t2)
             sensor_cpu.append(c4 - c2)
             # sensor rays: the static-scene calls (the actor scene re-casts a subset of them)
-            rays.append(sum(len(o) for e, _, o, _, _ in scene.ray_log if e is scene.static_embree))
+            rays.append(sum(len(o) for _, e, o, _, _ in scene.ray_log if e is scene.static_embree))
             tris.append(scene.n_static + len(scene.actors.triangles_m))
             del row
 

@@ -9,18 +9,15 @@ is committed once per worker process and reused by every episode that drives thr
 Measured: one Embree scene of a whole town instead traverses 12% slower on grid_small (51k
 triangles) and 27% slower on random_city (221k) than a culled one, for the same hits.
 
-Two Embree scenes per frame, not one. One scene per frame (culled static + actor boxes) was the
-first design, but embreex's `TriangleMesh` copies vertices into Embree one coordinate at a time through
-Python-level indexing: ~1.1 us per triangle (6.4k triangles: 6.5 ms; the 13-22k static triangles
-within reach: 15-20 ms CPU per commit, measured on this 2-core box), which alone would eat a
-third of the 50 ms frame budget. So the static scene is committed once per cell (60 m: 15-20 ms
-per commit, ~1.4 ms per frame at 10 m/s while the process cache is cold; 40 m costs 0.38 ms per
-metre driven, 60 m 0.27, 80 m 0.23 with a bigger scene to traverse), and the agents get
-their own small scene each frame (~1k triangles, <1 ms). Every sensor ray is cast into the static
-scene; only the rays that can hit an agent (LiDAR: its box's elevation x azimuth window, ~3k of
-64k rays; camera: its bounding sphere's projected rectangle) are cast again into the actor scene,
-bounded by their static hit (`dists=`), which costs ~0.5 ms a frame. bench/frame.py measures the
-result against bare Embree calls for the same rays.
+Two Embree scenes per frame, not one. Committing the 13-22k static triangles within reach costs
+2-3 ms (15-20 ms through embreex, which copied vertices one Python-level index at a time;
+datagen/embree.py fills the buffers with one copy), too much to pay every frame. So the static
+scene is committed once per cell (60 m; ~0.2 ms per frame at 10 m/s while the process cache is
+cold), and the agents get their own small scene each frame (~1k triangles, ~0.1 ms). Every
+sensor ray is cast into the static scene; only the rays that can hit an agent (LiDAR: its box's
+elevation x azimuth window, ~3k of 64k rays; camera: its bounding sphere's projected rectangle)
+are cast again into the actor scene, bounded by their static hit, which costs ~0.5 ms a frame.
+bench/frame.py measures the result against bare Embree queries for the same rays.
 """
 
 from __future__ import annotations
@@ -33,32 +30,13 @@ from functools import cached_property
 
 import numpy as np
 
+from datagen import embree
 from datagen.actors import ActorMesh, actor_mesh
 from datagen.scene import StaticScene
 from datagen.state import AgentState, FrameState, Pose
 
-_device = None
-
-
-def _embree_device():
-    global _device
-    if _device is None:
-        from embreex import rtcore
-
-        _device = rtcore.EmbreeDevice()
-    return _device
-
-
-def _embree_scene(triangles_m: np.ndarray):
-    """A committed embreex scene of (N, 3, 3) float32 triangles (primitive id = row)."""
-    from embreex import rtcore_scene
-    from embreex.mesh_construction import TriangleMesh
-
-    scene = rtcore_scene.EmbreeScene(_embree_device())
-    TriangleMesh(scene, np.ascontiguousarray(triangles_m, np.float32))
-    # embreex commits lazily on the first run(); commit now so the build is paid here.
-    scene.run(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32))
-    return scene
+QUERIES = {"intersect": embree.intersect, "distance": embree.distance, "occluded": embree.occluded}
+"""The Embree queries a FrameScene makes, by name (its ray_log records the name)."""
 
 
 @dataclass
@@ -72,7 +50,7 @@ class FrameScene:
     the static arrays with the actors' every frame.
 
     Attributes:
-        static_embree, actor_embree: committed embreex scenes (actor_embree None: no agents).
+        static_embree, actor_embree: committed `embree.Scene`s (actor_embree None: no agents).
         static_normals: (S, 3) float32; static_colour_rgb: (S, 3) uint8; static_material: (S,)
             uint8; static_tag: (S,) int32 lamp tags (-1 elsewhere): the static primitives'.
         actors: this frame's actor triangles (ActorMesh; its `actor` is the agent index).
@@ -81,8 +59,8 @@ class FrameScene:
         actor_boxes: (A, 6) float64 the agents' boxes: x, y (centre, m), yaw (rad), length,
             width, height (m); `actor_centres_m` and `actor_radii_m` derive their bounding
             spheres.
-        ray_log: if a list, every Embree call appends (scene, query, origins, directions,
-            dists) to it (bench/frame.py replays them as bare Embree calls).
+        ray_log: if a list, every Embree query appends (query, scene, origins, directions,
+            tfar) to it (bench/frame.py replays them through QUERIES as bare Embree calls).
     """
 
     static_embree: object
@@ -116,10 +94,12 @@ class FrameScene:
         out[dyn] = self.actors.actor[prim[dyn] - self.n_static]
         return out
 
-    def _run(self, scene, origins, directions, dists, query="INTERSECT", output=None):
+    def _run(self, query: str, scene, origins, directions, tfar):
+        """One Embree query (datagen/embree.py: intersect, distance or occluded); tfar is
+        overwritten with hit distances."""
         if self.ray_log is not None:
-            self.ray_log.append((scene, query, origins, directions, dists.copy()))
-        return scene.run(origins, directions, dists=dists, query=query, output=output)
+            self.ray_log.append((query, scene, origins, directions, tfar.copy()))
+        return QUERIES[query](scene, origins, directions, tfar)
 
     def cast(
         self,
@@ -137,10 +117,8 @@ class FrameScene:
         Returns:
             dist_m (N,) float32 (inf: no hit within max_dist_m), prim (N,) int32 (-1: none).
         """
-        n = len(origins)
-        dists = np.full(n, max_dist_m, np.float32)
-        out = self._run(self.static_embree, origins, directions, dists, output=1)
-        prim, dist = out["primID"], out["tfar"]
+        dist = np.full(len(origins), max_dist_m, np.float32)
+        prim = self._run("intersect", self.static_embree, origins, directions, dist)
         rays, actor_prim, actor_dist = self._actor_hits(origins, directions, dist, actor_rays)
         prim[rays] = actor_prim + self.n_static
         dist[rays] = actor_dist
@@ -163,15 +141,11 @@ class FrameScene:
         idx = np.arange(len(origins)) if actor_rays is None else actor_rays
         if not len(idx):
             return none, none, np.zeros(0, np.float32)
-        a = self._run(
-            self.actor_embree,
-            take_rows(origins, idx),
-            np.take(directions, idx, axis=0),
-            dist[idx],
-            output=1,
-        )
-        hit = a["primID"] >= 0
-        return idx[hit], a["primID"][hit], a["tfar"][hit]
+        bound = dist[idx]
+        dirs = np.take(directions, idx, axis=0)
+        prim = self._run("intersect", self.actor_embree, take_rows(origins, idx), dirs, bound)
+        hit = prim >= 0
+        return idx[hit], prim[hit], bound[hit]
 
     def distances(
         self,
@@ -184,9 +158,8 @@ class FrameScene:
         LiDAR needs): returns dist_m (N,) float32 (inf: no hit) and actor (N,) int32, the index
         into `agents` of the agent hit first, -1 for static hits and misses."""
         n = len(origins)
-        dists = np.full(n, max_dist_m, np.float32)
-        dist = self._run(self.static_embree, origins, directions, dists, "DISTANCE")
-        dist = np.minimum(dist, np.float32(max_dist_m)).astype(np.float32)
+        dist = np.full(n, max_dist_m, np.float32)
+        self._run("distance", self.static_embree, origins, directions, dist)
         actor = np.full(n, -1, np.int32)
         rays, actor_prim, actor_dist = self._actor_hits(origins, directions, dist, actor_rays)
         actor[rays] = self.actors.actor[actor_prim]
@@ -207,15 +180,15 @@ class FrameScene:
             directions: (N, 3) float32, or (1, 3) for one direction shared by all rays.
             actor_rays: indices of the rays that may pass an agent; None: all.
         """
-        dists = np.full(len(origins), max_dist_m, np.float32)
-        hit = self._run(self.static_embree, origins, directions, dists, "OCCLUDED") >= 0
+        bound = np.full(len(origins), max_dist_m, np.float32)
+        hit = self._run("occluded", self.static_embree, origins, directions, bound)
         if self.actor_embree is not None:
             idx = np.flatnonzero(~hit) if actor_rays is None else actor_rays[~hit[actor_rays]]
             if len(idx):
                 d = np.full(len(idx), max_dist_m, np.float32)
                 dirs = directions if len(directions) == 1 else np.take(directions, idx, axis=0)
-                a = self._run(self.actor_embree, take_rows(origins, idx), dirs, d, "OCCLUDED")
-                hit[idx[a >= 0]] = True
+                a = self._run("occluded", self.actor_embree, take_rows(origins, idx), dirs, d)
+                hit[idx[a]] = True
         return hit
 
 
@@ -246,7 +219,7 @@ def _cell_scene(static: StaticScene, cell: tuple[int, int], radius_m: float, til
     idx = np.repeat(starts - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens)
     idx += np.arange(int(lens.sum()))
     part = (
-        _embree_scene(st.triangles_m[idx]),
+        embree.Scene(st.triangles_m[idx]),
         st.normals[idx],
         st.colour_rgb[idx],
         st.material[idx],
@@ -294,7 +267,7 @@ class SceneBuilder:
         return self._static
 
     def build(self, frame: FrameState) -> FrameScene:
-        embree, normals, colour, material, tag = self._static_part(frame.ego.pose)
+        static_scene, normals, colour, material, tag = self._static_part(frame.ego.pose)
         ex, ey = frame.ego.pose.x_m, frame.ego.pose.y_m
         agents = tuple(
             a
@@ -310,8 +283,8 @@ class SceneBuilder:
             np.float64,
         ).reshape(-1, 6)
         return FrameScene(
-            static_embree=embree,
-            actor_embree=_embree_scene(actors.triangles_m) if len(actors.triangles_m) else None,
+            static_embree=static_scene,
+            actor_embree=embree.Scene(actors.triangles_m) if len(actors.triangles_m) else None,
             static_normals=normals,
             static_colour_rgb=colour,
             static_material=material,
@@ -365,6 +338,6 @@ def take_rows(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
 
 
 def repeat_rows(row: np.ndarray, n: int) -> np.ndarray:
-    """(3,) float32 -> an (n, 3) view of it repeated by a zero stride (read-only use; embreex
-    reads strided arrays, and it saves a 0.3 ms copy per 64k rays)."""
+    """(3,) float32 -> an (n, 3) view of it repeated by a zero stride (read-only use; the Embree
+    queries read it as one shared origin, and it saves a 0.3 ms copy per 64k rays)."""
     return np.lib.stride_tricks.as_strided(row, (n, 3), (0, row.strides[0]))
