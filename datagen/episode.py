@@ -38,7 +38,7 @@ HISTORY = 2  # past sweeps in the LiDAR BEV (t-1, t-2)
 FUTURE = labels.FUTURE_FRAMES  # 4 future states for +2.0 s waypoints
 STAGES = ("sim", "scene", "lidar", "camera", "labels", "encode")
 
-DATA_VERSION = 9
+DATA_VERSION = 10
 """What the generator writes, beyond the scene (bump it with every change of shard bytes for the
 same seed; tests/test_identical.py pins them; data/README.md lists the changes):
 1 the first release; 2 PNG columns encoded with no/UP row filter + RLE (same decoded arrays);
@@ -56,7 +56,8 @@ its path (`expert.emergency_brake_mps2`), and counts a car standing at a stop li
 junction as a foe before beginning a turn that waits inside it; 9 a vehicle is on the expert's
 path by the part of its box inside the corridor ahead (`perception.corridor_span`; a skewed bus
 beside it no longer stops it), and a green that ends too soon is timed at the junction's curve
-speed, read from the comfortable stopping distance out and stopped for at the vType decel."""
+speed, read from the comfortable stopping distance out and stopped for at the vType decel;
+10 the camera JPEG keeps full-resolution colour (4:4:4; schemas/codecs.py JPEG_SAMPLING)."""
 
 
 def generator_version() -> str:

@@ -28,9 +28,9 @@ EPISODES = (
     ("grid3-3-0", 3, "sunny", "normal", 5),
     ("grid3-8-1", 8, "rainy", "aggressive", 3),
 )
-EXPECTED_SHA256 = {  # scene v2, data v9, schema 1.1
-    "grid3-3-0": "400621c63ec06debc5ddcc67e1f26265b370d25210ced4900a06f378a58fec2d",
-    "grid3-8-1": "71a007e6dff109e904d2ed475ab6460233f9004dd23afbe9c7d7d308bd449756",
+EXPECTED_SHA256 = {  # scene v2, data v10, schema 1.1
+    "grid3-3-0": "343e335d600ce60fc839c94e23465858c3e2f7af86f47e38596cefd71144ed78",
+    "grid3-8-1": "4e047532f6dc9d16f7ffb661d2d33384c8c509f6a01eee24359441c46dfacdd0",
 }
 
 

@@ -82,6 +82,16 @@ def test_codecs_keep_channel_order():
     assert codecs.decode_image(codecs.encode_image(red))[..., 0].mean() > 240
 
 
+def test_a_lamp_two_pixels_wide_keeps_its_colour_through_the_jpeg():
+    """A red signal lamp 2 px wide on a grey sky, straddling JPEG's 2x2 chroma blocks: 4:2:0
+    subsampling would average its red with the grey around it (data v10 keeps 4:4:4)."""
+    sky = np.full((32, 32, 3), 150, np.uint8)
+    sky[11:13, 15:17] = (255, 45, 30)  # rows 11-12, columns 15-16: across block borders
+    lamp = codecs.decode_image(codecs.encode_image(sky)).astype(int)[11:13, 15:17]
+    redness = lamp[..., 0] - np.maximum(lamp[..., 1], lamp[..., 2])
+    assert redness.min() > 150, redness
+
+
 def test_bev_grid_puts_ego_at_bottom_centre():
     row, col = schemas.ego_to_bev_px(0.0, 0.0)
     assert (row, col) == (256.0, 128.0)
