@@ -1,14 +1,18 @@
-"""Is a head's miss in the features or in the training? Weather accuracy per town, and linear probes.
+"""Is a head's miss in the features or in the training? A head's score per town, and linear probes.
 
     python bench/probe.py --ckpt runs/exp/runs/full-s0/last.pt --shards runs/exp/data
     python bench/probe.py --ckpt CKPT --shards DIR --held-out arterial --frames-per-town 160
+    python bench/probe.py --ckpt CKPT --shards DIR --head red     # the red-light output
 
-For a sample of frames of every town it prints the checkpoint's weather-head accuracy per town,
-then fits three linear probes (softmax regression, full batch, on the seen towns' frames) and
-scores them on the seen and the held-out town:
-- `fdsu`: the pooled scene feature F_DSU (what the weather head reads, before its ECA);
+For a sample of frames of every town it prints the checkpoint's score per town (weather:
+accuracy; red: the traffic head's red-light F1), then fits three linear probes (softmax
+regression, full batch, on the seen towns' frames) and scores them on the seen and the held-out
+town:
+- `fdsu`: the pooled scene feature F_DSU (what the heads read, before their ECA);
 - `image`: the pooled output of the camera encoder's last stage, run without the fusion layers;
-- `colour`: 15 statistics of the raw image (mean RGB of four 64-row bands, per-channel std).
+- `colour`: 15 statistics of the raw image (mean RGB of four 64-row bands, per-channel std) and
+  the 1st, 3rd and 10th largest redness (R - max(G, B)) of its pixels, where a lit red lamp of
+  2-3 px shows.
 
 A head that is as wrong on its own training towns as on the held-out one, while the probes are
 right, is under-trained (issue 13: weather after 2 epochs). Asserts nothing.
@@ -31,8 +35,9 @@ from training.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: 
 from training.errors import UserError  # noqa: E402
 
 
-def features(model, samples: list[dict], batch: int = 16) -> tuple[dict, np.ndarray]:
-    """Per frame: the three probe inputs and the weather head's predicted class."""
+def features(model, samples: list[dict], head: str, batch: int = 16) -> tuple[dict, np.ndarray]:
+    """Per frame: the three probe inputs and the head's predicted class (weather: its index;
+    red: 1 for a red light, p >= 0.5; -1 throughout without that head)."""
     feats = {"fdsu": [], "image": [], "colour": []}
     preds = []
     with torch.no_grad():
@@ -42,8 +47,11 @@ def features(model, samples: list[dict], batch: int = 16) -> tuple[dict, np.ndar
             lid = torch.from_numpy(np.stack([s["lidar"] for s in b]))
             speed = torch.tensor([s["speed"] for s in b])
             f = model.encode(img, lid, speed)
-            if "weather" in model.heads:  # the weather head as IIDSU.forward applies it
-                preds.append(model.heads["weather"](model.eca["weather"](f)).argmax(1).numpy())
+            name = "weather" if head == "weather" else "traffic"
+            if name in model.heads:  # the head as IIDSU.forward applies it
+                out = model.heads[name](model.eca[name](f))
+                p = out.argmax(1) if head == "weather" else (out[:, 0] >= 0).long()
+                preds.append(p.numpy())
             feats["fdsu"].append(f.mean((2, 3)).numpy())
             x = model.image_encoder.stem((img.float() / 255 - model.mean) / model.std)
             for stage in model.image_encoder.stages:
@@ -51,7 +59,9 @@ def features(model, samples: list[dict], batch: int = 16) -> tuple[dict, np.ndar
             feats["image"].append(x.mean((2, 3)).numpy())
             rgb = img.float() / 255
             bands = [rgb[:, :, r : r + 64].mean((2, 3)) for r in range(0, 256, 64)]
-            feats["colour"].append(torch.cat(bands + [rgb.std((2, 3))], 1).numpy())
+            redness = (rgb[:, 0] - rgb[:, 1:].amax(1)).flatten(1).topk(10, 1).values
+            lamps = redness[:, [0, 2, 9]]
+            feats["colour"].append(torch.cat(bands + [rgb.std((2, 3)), lamps], 1).numpy())
     pred = np.concatenate(preds) if preds else np.full(len(samples), -1)
     return {k: np.concatenate(v) for k, v in feats.items()}, pred
 
@@ -71,6 +81,12 @@ def probe(x: np.ndarray, y: np.ndarray, train: np.ndarray, steps: int = 500) -> 
         return lin(xt).argmax(1).numpy()
 
 
+def f1(pred: np.ndarray, y: np.ndarray) -> float:
+    """F1 of the positive class (1)."""
+    tp = np.sum((pred == 1) & (y == 1))
+    return 2 * tp / max(np.sum(pred == 1) + np.sum(y == 1), 1)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ckpt", required=True)
@@ -79,6 +95,7 @@ def main() -> None:
                     "(default: the checkpoint's validation town, if one town)")  # fmt: skip
     ap.add_argument("--frames-per-town", type=int, default=160)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--head", choices=("weather", "red"), default="weather")
     args = ap.parse_args()
 
     try:
@@ -101,20 +118,28 @@ def main() -> None:
     sample = index.iloc[np.sort(np.concatenate(picks))]
     samples = data.read_frames(sample, model.cfg.output_px, model.cfg.single_frame_lidar)
     towns = sample.town.to_numpy()
-    y = np.array([int(s["weather"]) for s in samples])
-    feats, pred = features(model, samples)
+    if args.head == "weather":
+        y = np.array([int(s["weather"]) for s in samples])
+        score, what = (lambda p, t: np.mean(p == t)), "weather-head accuracy"
+    else:
+        y = np.array([int(s["traffic"][0]) for s in samples])
+        score, what = f1, "red-light F1"
+    feats, pred = features(model, samples, args.head)
 
-    print(f"weather head accuracy per town ({args.ckpt}):")
+    print(f"{what} per town ({args.ckpt}):")
     for town in sorted(set(towns)):
         m = towns == town
-        acc = "n/a (no weather head)" if pred[0] < 0 else f"{np.mean(pred[m] == y[m]):.3f}"
-        print(f"  {town:14s} {acc}  ({m.sum()} frames){'  held out' if town == held else ''}")
+        acc = "n/a (no such head)" if pred[0] < 0 else f"{score(pred[m], y[m]):.3f}"
+        extra = f", {int(y[m].sum())} red" if args.head == "red" else ""
+        print(
+            f"  {town:14s} {acc}  ({m.sum()} frames{extra}){'  held out' if town == held else ''}"
+        )
     seen, out = towns != held, towns == held
-    print(f"linear probes, fitted on the seen towns, scored on seen / held-out {held}:")
+    print(f"linear probes ({what}), fitted on the seen towns, scored on seen / held-out {held}:")
     for name, x in feats.items():
         p = probe(x, y, seen)
-        print(f"  {name:7s} ({x.shape[1]:4d}-d): {np.mean(p[seen] == y[seen]):.3f} / "
-              f"{np.mean(p[out] == y[out]):.3f}")  # fmt: skip
+        print(f"  {name:7s} ({x.shape[1]:4d}-d): {score(p[seen], y[seen]):.3f} / "
+              f"{score(p[out], y[out]):.3f}")  # fmt: skip
 
 
 if __name__ == "__main__":
