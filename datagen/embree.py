@@ -128,7 +128,7 @@ class Scene:
         self.n_triangles = n
 
     def __del__(self):
-        if getattr(self, "ptr", None):
+        if getattr(self, "ptr", None) and _lib is not None:  # (None at interpreter exit)
             _lib.rtcReleaseScene(self.ptr)
             self.ptr = None
 
