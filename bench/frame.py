@@ -10,8 +10,8 @@ boxes + Embree commit; the town's static scene is committed once per process), l
 PNGs). Prints the median ms per stage (wall and CPU time: the machine is shared, CPU time is the
 steadier figure), the rays per second achieved by the two sensor stages, and the limit: the very
 same rays (LiDAR, camera, shadow rays; logged per frame) cast again by bare Embree queries
-(datagen/embree.py) on the same committed scene, and the ratio of the two in the same run (issue 12: sensors
-within 1.3x of bare Embree). `measure()` is also what bench/build.py calls for its limit.
+(datagen/embree.py) on the same committed scene, and the ratio of the two in the same run
+(issue 12: sensors within 1.3x of bare Embree). `measure()` is also what bench/build.py calls for its limit.
 """
 
 from __future__ import annotations

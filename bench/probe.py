@@ -30,7 +30,7 @@ import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from training import data  # noqa: E402
+from training import data, evaluate  # noqa: E402
 from training.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
 from training.errors import UserError  # noqa: E402
 
@@ -82,9 +82,8 @@ def probe(x: np.ndarray, y: np.ndarray, train: np.ndarray, steps: int = 500) -> 
 
 
 def f1(pred: np.ndarray, y: np.ndarray) -> float:
-    """F1 of the positive class (1)."""
-    tp = np.sum((pred == 1) & (y == 1))
-    return 2 * tp / max(np.sum(pred == 1) + np.sum(y == 1), 1)
+    """F1 of the positive class (1), as `train eval` scores it; 0 without any positive."""
+    return evaluate.binary_scores(pred.astype(np.float32), y)["f1"] or 0.0
 
 
 def main() -> None:

@@ -125,7 +125,6 @@ class Scene:
         error = lib.rtcGetDeviceError(_device)
         if error:
             raise RuntimeError(f"Embree error {error} building a scene of {n} triangles")
-        self.n_triangles = n
 
     def __del__(self):
         if getattr(self, "ptr", None) and _lib is not None:  # (None at interpreter exit)
@@ -140,6 +139,25 @@ def _aligned_f32(n: int) -> np.ndarray:
     return raw[start : start + n]
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _load_ray(ray, u, lane, lanes, origin, direction, tfar):
+    """Write one ray into lane `lane` of an Embree ray structure of `lanes` lanes (1: RTCRay,
+    16: RTCRay16; `u` is the same memory as uint32): origin, direction, tnear = time = 0,
+    tfar, every mask bit, id and flags 0."""
+    ray[_OX * lanes + lane] = origin[0]
+    ray[_OY * lanes + lane] = origin[1]
+    ray[_OZ * lanes + lane] = origin[2]
+    ray[_TNEAR * lanes + lane] = 0.0
+    ray[_DX * lanes + lane] = direction[0]
+    ray[_DY * lanes + lane] = direction[1]
+    ray[_DZ * lanes + lane] = direction[2]
+    ray[_TIME * lanes + lane] = 0.0
+    ray[_TFAR * lanes + lane] = tfar
+    u[_MASK * lanes + lane] = _INVALID
+    u[_ID * lanes + lane] = 0
+    u[_FLAGS * lanes + lane] = 0
+
+
 @numba.njit(cache=True, nogil=True)
 def _first_hits(scene, origins, directions, tfar, prim, want_prim, rayhit):
     """rtcIntersect1 for each ray i (origins, directions: (N, 3) or (1, 3) shared); tfar (N,)
@@ -150,19 +168,7 @@ def _first_hits(scene, origins, directions, tfar, prim, want_prim, rayhit):
     o_step = 1 if origins.shape[0] > 1 else 0
     d_step = 1 if directions.shape[0] > 1 else 0
     for i in range(tfar.shape[0]):
-        o, d = i * o_step, i * d_step
-        rayhit[_OX] = origins[o, 0]
-        rayhit[_OY] = origins[o, 1]
-        rayhit[_OZ] = origins[o, 2]
-        rayhit[_TNEAR] = 0.0
-        rayhit[_DX] = directions[d, 0]
-        rayhit[_DY] = directions[d, 1]
-        rayhit[_DZ] = directions[d, 2]
-        rayhit[_TIME] = 0.0
-        rayhit[_TFAR] = tfar[i]
-        u[_MASK] = _INVALID
-        u[_ID] = 0
-        u[_FLAGS] = 0
+        _load_ray(rayhit, u, 0, 1, origins[i * o_step], directions[i * d_step], tfar[i])
         u[_PRIM] = _INVALID
         u[_GEOM] = _INVALID
         u[_INST] = _INVALID
@@ -189,19 +195,7 @@ def _any_hits(scene, origins, directions, tfar, hit, ray, valid):
                 valid[j] = 0
                 continue
             i = start + j
-            o, d = i * o_step, i * d_step
-            ray[_OX * _PACKET + j] = origins[o, 0]
-            ray[_OY * _PACKET + j] = origins[o, 1]
-            ray[_OZ * _PACKET + j] = origins[o, 2]
-            ray[_TNEAR * _PACKET + j] = 0.0
-            ray[_DX * _PACKET + j] = directions[d, 0]
-            ray[_DY * _PACKET + j] = directions[d, 1]
-            ray[_DZ * _PACKET + j] = directions[d, 2]
-            ray[_TIME * _PACKET + j] = 0.0
-            ray[_TFAR * _PACKET + j] = tfar[i]
-            u[_MASK * _PACKET + j] = _INVALID
-            u[_ID * _PACKET + j] = 0
-            u[_FLAGS * _PACKET + j] = 0
+            _load_ray(ray, u, j, _PACKET, origins[i * o_step], directions[i * d_step], tfar[i])
             valid[j] = -1
         _occluded16(valid_address, scene, address, 0)
         for j in range(k):
