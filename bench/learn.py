@@ -132,7 +132,7 @@ def epochs_table(run: Path) -> str:
     lines = [
         "",
         "per epoch (held-out town):",
-        "epoch  train   val    ADE    CV ADE  weather  red F1  lane IoU",
+        "epoch  train   val    ADE    CV ADE  weather  red F1  lane IoU  red F1 (camera alone)",
     ]
     path = run / "metrics.jsonl"
     for m in map(json.loads, path.read_text().splitlines() if path.is_file() else []):
@@ -141,7 +141,7 @@ def epochs_table(run: Path) -> str:
             f"{m['epoch']:>5}  {m['train']['total']:.3f}  {m['val'].get('total', 0):.3f}  "
             f"{_fmt(v.get('ade_m')):>6} {_fmt(v.get('cv_ade_m')):>7}  "
             f"{_fmt(v.get('weather_accuracy')):>7}  {_fmt(v.get('red_light_f1')):>6}  "
-            f"{_fmt(v.get('iou_lane_marking')):>8}"
+            f"{_fmt(v.get('iou_lane_marking')):>8}  {_fmt(v.get('camera_red_light_f1')):>8}"
         )
     return "\n".join(lines)
 

@@ -115,7 +115,8 @@ def test_fit_logs_every_term_to_jsonl_and_tensorboard(shards, tmp_path):
     )
     out = tmp_path / "run"
     fit.fit(TINY_MODEL, _train_cfg(shards, out, epochs=2))
-    terms = set(loss_terms(TINY_MODEL.heads))
+    terms = set(loss_terms(TINY_MODEL.heads, TINY_MODEL.has_camera_traffic))
+    assert "camera_tf" in terms
     steps = [json.loads(line) for line in (out / fit.STEPS).read_text().splitlines()]
     assert [s["step"] for s in steps] == [3, 6]  # the last step of each epoch (3 per epoch)
     assert all(set(s["train"]) == terms and s["lr"] > 0 and s["samples_per_s"] > 0 for s in steps)
@@ -123,6 +124,7 @@ def test_fit_logs_every_term_to_jsonl_and_tensorboard(shards, tmp_path):
     assert {"ade_m", "cv_ade_m", "weather_accuracy", "red_light_f1", "iou_lane_marking"} <= set(
         epochs[-1]["val_metrics"]
     )
+    assert "camera_red_light_f1" in epochs[-1]["val_metrics"]
     (events,) = (out / fit.TENSORBOARD).glob("events.out.tfevents.*")
     acc = event_accumulator.EventAccumulator(str(events))
     acc.Reload()

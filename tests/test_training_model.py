@@ -36,7 +36,37 @@ def test_tiny_heads_have_paper_layout():
         "bev": (2, 3, R, R),
         "traffic": (2, 2),
         "weather": (2, 4),
+        "camera_traffic": (2, 2),  # ours: the traffic rule from the camera encoder alone
     }
+
+
+def test_camera_traffic_head_sees_the_camera_alone():
+    torch.manual_seed(0)
+    model = IIDSU(TINY).eval()
+    image, lidar, speed, target = _inputs(2)
+    image = torch.randint(0, 256, image.shape, dtype=torch.uint8)
+    other_lidar = torch.randint(0, 6, lidar.shape, dtype=torch.uint8)
+    with torch.no_grad():
+        a = model(image, lidar, speed, target)
+        b = model(image, other_lidar, speed * 3, target)
+        c = model(image.flip(3), lidar, speed, target)
+    # no LiDAR and no speed reach it (the fusion layers would carry both), while F_DSU's own
+    # traffic head and the camera do
+    assert torch.equal(a["camera_traffic"], b["camera_traffic"])
+    assert not torch.allclose(a["traffic"], b["traffic"])
+    assert not torch.allclose(a["camera_traffic"], c["camera_traffic"])
+
+
+def test_camera_traffic_head_goes_with_the_traffic_head_and_old_checkpoints_lack_it():
+    from training.config import ModelConfig
+
+    for cfg in (
+        dataclasses.replace(TINY, camera_traffic=False),
+        dataclasses.replace(TINY, traffic=False),  # "No Traffic Rule" learns no rule elsewhere
+    ):
+        assert "camera_traffic" not in IIDSU(cfg)(*_inputs(1))
+    old = {k: v for k, v in dataclasses.asdict(TINY).items() if k != "camera_traffic"}
+    assert ModelConfig.from_dict(old).camera_traffic is False
 
 
 def test_planner_reads_the_speed_and_old_checkpoints_load_without_it():
@@ -72,6 +102,7 @@ def test_paper_model_shapes_on_meta_device():
         "bev": (1, 3, 256, 256),
         "traffic": (1, 2),
         "weather": (1, 4),
+        "camera_traffic": (1, 2),
     }
     assert [m.conv.kernel_size[0] for m in model.eca.values()] == [5] * 5
     assert 60e6 < sum(p.numel() for p in model.parameters()) < 80e6
@@ -102,7 +133,10 @@ def test_each_ablation_removes_its_head_and_loss(switch, head, terms, tmp_path_f
     batch = _batch(tmp_path_factory, n=2)
     losses = compute_losses(model(*(batch[k] for k in INPUTS)), batch, TrainConfig())
     assert not terms & losses.keys()
-    assert set(losses) == set(loss_terms(cfg.heads)) == set(loss_terms(TINY.heads)) - terms
+    camera = cfg.has_camera_traffic  # goes with the traffic head
+    assert camera == (switch != "traffic")
+    expected = set(loss_terms(TINY.heads, True)) - terms - (set() if camera else {"camera_tf"})
+    assert set(losses) == set(loss_terms(cfg.heads, camera)) == expected
 
 
 def test_single_frame_lidar_reads_two_channels():

@@ -82,6 +82,7 @@ MODEL_FLAGS = {
     "no_traffic": "traffic",
     "no_weather": "weather",
     "single_frame_lidar": "single_frame_lidar",
+    "no_camera_traffic": "camera_traffic",
 }
 RESUMABLE = {"shards", "out", "epochs", "workers", "compile"}  # may change on --resume
 
@@ -127,6 +128,13 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--output-px", type=_positive_int, metavar="R", help="R, side of the dense heads' maps"
     )
+    p.add_argument(
+        "--no-camera-traffic",
+        action="store_true",
+        default=None,
+        help="without the camera-only traffic-rule training head (ours, not the paper's; on by "
+        "default: without it the model read red lights from LiDAR context, not the lamps)",
+    )
     p.add_argument("--compile", action="store_true", default=None, help="torch.compile the model")
     p.add_argument("--device", choices=DEVICES, default="auto", help=DEVICE_HELP)
     p.add_argument(
@@ -162,7 +170,8 @@ default; batch 32, 30 epochs, the warm-up + cosine schedule and the loss weights
 1.0, detection 0.2, BEV 0.2, traffic 0.1, weather 0.1) are our choice, the weights set so
 that planning dominates as Sec. III-C wishes; the BEV class weights (1, 1, 3: lane markings
 are thin) and the red-light / stop-sign positive weights (3, 3: both are the minority) are
-ours too. The tiny preset's values (lr 1e-3, batch 8,
+ours too, and so is the camera-only traffic-rule head (weight 0.1; --no-camera-traffic drops
+it), which makes the camera encoder find lamps and signs itself. The tiny preset's values (lr 1e-3, batch 8,
 R = 64) are ours, for CPUs; bench/learn.py measures what they learn on a held-out town.
 TransFuser's fusion depth (8 blocks, 4 heads per layer) fills in what the paper leaves out.
 """

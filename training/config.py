@@ -48,6 +48,13 @@ class ModelConfig:
     traffic: bool = True
     weather: bool = True
     single_frame_lidar: bool = False  # LiDAR input: the current sweep only (training/model.py)
+    # Ours, not the paper's: a training-time traffic-rule head on the camera encoder run alone
+    # (training/model.py IIDSU.camera_traffic). Without it the tiny model read red lights from
+    # LiDAR context, not from the lamps: trained on a 16k-frame v10 build, its red-light F1 with
+    # a flat camera image was still 0.78 on grid_small and 0.36 on the held-out town (0.96 and
+    # 0.42 with the image), and a linear probe of the camera encoder alone found no red light
+    # (F1 0.37 seen, 0.05 held out; bench/probe.py --head red [--blank image]).
+    camera_traffic: bool = True
 
     def __post_init__(self):
         if len(self.depths) != 4 or len(self.dims) != 4:
@@ -70,6 +77,12 @@ class ModelConfig:
         return ("planning",) + tuple(h for h in HEADS[1:] if on[h])
 
     @property
+    def has_camera_traffic(self) -> bool:
+        """The camera-only traffic-rule head is on (only with the traffic head: the "No Traffic
+        Rule" ablation must not learn the rule elsewhere)."""
+        return self.camera_traffic and self.traffic
+
+    @property
     def lidar_in_channels(self) -> int:
         """Channels of the LiDAR input: 4 (ground summed over t, t-1, t-2; above-ground at t,
         t-1, t-2), or 2 for the single-frame ablation (ground and above-ground at t)."""
@@ -85,7 +98,8 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> ModelConfig:
-        d = {"planner_speed": False, **d}  # checkpoints from before the option had no speed
+        # Checkpoints from before an option was added were trained without it.
+        d = {"planner_speed": False, "camera_traffic": False, **d}
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
 
 
@@ -121,6 +135,9 @@ class TrainConfig:
     lambda_m: float = 0.2
     lambda_tf: float = 0.1
     lambda_wc: float = 0.1
+    # Ours: weight of the camera-only traffic-rule term (ModelConfig.camera_traffic), as much as
+    # the traffic head's own.
+    lambda_camera_tf: float = 0.1
     # Cross-entropy weights of the BEV classes (other, drivable, lane marking): ours. Markings
     # are ~8 % of the pixels at R = 64 (3 % at 256; measured on an 8-town build), and with equal
     # weights the tiny model never predicted them on a held-out town (lane IoU 0.00).

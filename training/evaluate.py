@@ -134,6 +134,8 @@ def headline(result: dict) -> dict[str, float | None]:
         out.update({f"iou_{c}": v for c, v in result["bev"]["iou"].items()})
     if "traffic" in result:
         out.update({f"{k}_f1": v["f1"] for k, v in result["traffic"].items()})
+    if "camera_traffic" in result:
+        out["camera_red_light_f1"] = result["camera_traffic"]["red_light"]["f1"]
     if "weather" in result:
         out["weather_accuracy"] = result["weather"]["accuracy"]
     return out
@@ -148,7 +150,8 @@ def _collect(model, loader, device: torch.device) -> dict[str, list]:
     raw: dict[str, list] = {k: [] for k in ("wp_err", "cv_err", "confusion")}
     raw.update({f"preds_{t}": [] for t in range(N_T)})
     raw.update({f"truths_{t}": [] for t in range(N_T)})
-    raw.update({k: [] for k in ("traffic_prob", "traffic_true", "weather_pred", "weather_true")})
+    keys = ("traffic_prob", "camera_traffic_prob", "traffic_true", "weather_pred", "weather_true")
+    raw.update({k: [] for k in keys})
     for batch in loader:
         batch = to_device(batch, device)
         with autocast(device):
@@ -175,6 +178,8 @@ def _collect(model, loader, device: torch.device) -> dict[str, list]:
         if "traffic" in out:
             raw["traffic_prob"].append(out["traffic"].float().sigmoid().cpu().numpy())
             raw["traffic_true"].append(batch["traffic"].cpu().numpy())
+        if "camera_traffic" in out:  # ours: the camera encoder's own traffic-rule output
+            raw["camera_traffic_prob"].append(out["camera_traffic"].float().sigmoid().cpu().numpy())
         if "weather" in out:
             raw["weather_pred"].append(out["weather"].argmax(1).cpu().numpy())
             raw["weather_true"].append(batch["weather"].cpu().numpy())
@@ -222,6 +227,12 @@ def _score(raw: dict[str, list], heads) -> dict:
             "red_light": binary_scores(prob[:, 0], true[:, 0]),
             "stop_sign": binary_scores(prob[:, 1], true[:, 1]),
         }
+        if raw.get("camera_traffic_prob"):  # the camera-only head (ModelConfig.camera_traffic)
+            cam = np.concatenate(raw["camera_traffic_prob"])
+            result["camera_traffic"] = {
+                "red_light": binary_scores(cam[:, 0], true[:, 0]),
+                "stop_sign": binary_scores(cam[:, 1], true[:, 1]),
+            }
     if "weather" in heads:
         pred, true = np.concatenate(raw["weather_pred"]), np.concatenate(raw["weather_true"])
         matrix = np.bincount(true * 4 + pred, minlength=16).reshape(4, 4)
@@ -260,6 +271,8 @@ def format_table(result: dict) -> str:
             lines.append(
                 f"  {name:<10}{_fmt(s['accuracy']):>8}  {_fmt(s['f1']):>5}  {s['positives']:>6}"
             )
+        for name, s in result.get("camera_traffic", {}).items():  # the camera-only head
+            lines.append(f"  {name:<10}{_fmt(s['accuracy']):>8}  {_fmt(s['f1']):>5}  camera alone")
     if "weather" in result:
         w = result["weather"]
         lines += ["", f"weather     accuracy {_fmt(w['accuracy'])}; confusion (rows truth):"]

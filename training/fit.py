@@ -150,7 +150,10 @@ def estimate_loss(model: IIDSU, loader, cfg: TrainConfig, proc: Process) -> dict
     model.train()
     # Every rank joins the reduction with the same keys, also one that had no frames.
     zero = torch.zeros((), device=proc.device)
-    sums = {k: sums.get(k, zero) for k in (*loss_terms(model.cfg.heads), "n")}
+    sums = {
+        k: sums.get(k, zero)
+        for k in (*loss_terms(model.cfg.heads, model.cfg.has_camera_traffic), "n")
+    }
     total = _all_sum(sums, proc)
     n = total.pop("n")
     return {k: v / n for k, v in total.items()} if n else {}

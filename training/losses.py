@@ -8,7 +8,9 @@ L_wp: L1 between predicted and expert waypoints. L_heat: CenterNet's penalty-red
 object centres. L_M: cross-entropy with class weights (`TrainConfig.bev_class_weights`, thin
 lane markings weigh more). L_wc: cross-entropy. L_light, L_sign: binary cross-entropy, positives weighted by
 `TrainConfig.traffic_pos_weight` (red lights and stop signs are the minority). A head switched
-off (an ablation) has no output, so its term is absent from the sum. Every term is computed in
+off (an ablation) has no output, so its term is absent from the sum. Ours, not the paper's:
+with `ModelConfig.camera_traffic`, the same traffic-rule loss on the camera encoder alone,
+weighted `TrainConfig.lambda_camera_tf`. Every term is computed in
 float32, also under bf16 autocast.
 """
 
@@ -30,9 +32,20 @@ TERMS = {
 """The terms `compute_losses` returns for each head present ("total" always)."""
 
 
-def loss_terms(heads: tuple[str, ...]) -> tuple[str, ...]:
-    """Names of the terms `compute_losses` returns for a model with these heads."""
-    return tuple(t for h in heads for t in TERMS[h])
+def loss_terms(heads: tuple[str, ...], camera_traffic: bool = False) -> tuple[str, ...]:
+    """Names of the terms `compute_losses` returns for a model with these heads (and the
+    camera-only traffic-rule head, `ModelConfig.has_camera_traffic`)."""
+    return tuple(t for h in heads for t in TERMS[h]) + (("camera_tf",) if camera_traffic else ())
+
+
+def traffic_rule_loss(logits: torch.Tensor, truth: torch.Tensor, cfg: TrainConfig):
+    """L_light, L_sign and gamma L_light + delta L_sign of (B, 2) logits against 0/1 truth."""
+    logits = logits.float()
+    pos = torch.tensor(cfg.traffic_pos_weight, device=logits.device)
+    bce = F.binary_cross_entropy_with_logits
+    light = bce(logits[:, 0], truth[:, 0], pos_weight=pos[0])
+    stop = bce(logits[:, 1], truth[:, 1], pos_weight=pos[1])
+    return light, stop, cfg.gamma * light + cfg.delta * stop
 
 
 def focal_loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -75,7 +88,8 @@ def compute_losses(
             bev (B, R, R) uint8 class ids; traffic (B, 2) 0/1 float32
             (red light, stop sign); weather (B,) int64.
     Returns:
-        scalar tensors: wp, and as present heat, reg, det, bev, light, stop, tf, weather; total.
+        scalar tensors: wp, and as present heat, reg, det, bev, light, stop, tf, weather,
+        camera_tf; total.
     """
     terms = {"wp": F.l1_loss(out["planning"].float(), batch["waypoints"])}
     total = cfg.lambda_wp * terms["wp"]
@@ -92,13 +106,13 @@ def compute_losses(
         terms["bev"] = F.cross_entropy(out["bev"].float(), batch["bev"].long(), weight=weight)
         total = total + cfg.lambda_m * terms["bev"]
     if "traffic" in out:
-        logits, truth = out["traffic"].float(), batch["traffic"]
-        pos = torch.tensor(cfg.traffic_pos_weight, device=logits.device)
-        bce = F.binary_cross_entropy_with_logits
-        terms["light"] = bce(logits[:, 0], truth[:, 0], pos_weight=pos[0])
-        terms["stop"] = bce(logits[:, 1], truth[:, 1], pos_weight=pos[1])
-        terms["tf"] = cfg.gamma * terms["light"] + cfg.delta * terms["stop"]
+        terms["light"], terms["stop"], terms["tf"] = traffic_rule_loss(
+            out["traffic"], batch["traffic"], cfg
+        )
         total = total + cfg.lambda_tf * terms["tf"]
+    if "camera_traffic" in out:  # ours: the same rule from the camera encoder alone
+        terms["camera_tf"] = traffic_rule_loss(out["camera_traffic"], batch["traffic"], cfg)[2]
+        total = total + cfg.lambda_camera_tf * terms["camera_tf"]
     if "weather" in out:
         terms["weather"] = F.cross_entropy(out["weather"].float(), batch["weather"])
         total = total + cfg.lambda_wc * terms["weather"]

@@ -168,6 +168,8 @@ class IIDSU(nn.Module):
             "weather": lambda: WeatherHead(C),
         }
         self.heads = nn.ModuleDict({name: make[name]() for name in cfg.heads})
+        # Ours (ModelConfig.camera_traffic): the traffic rule from the camera encoder alone.
+        self.camera_traffic = TrafficRuleHead(cfg.dims[-1]) if cfg.has_camera_traffic else None
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), False)
 
@@ -182,6 +184,14 @@ class IIDSU(nn.Module):
         Returns:
             (B, feature_dim, H / 32, W / 32) float.
         """
+        return self._encode(image, lidar, speed, camera_alone=False)[0]
+
+    def _encode(
+        self, image: torch.Tensor, lidar: torch.Tensor, speed: torch.Tensor, camera_alone: bool
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """F_DSU and, with `camera_alone`, the camera encoder's last map without any fusion:
+        stages 2-4 run a second time on the first stage's output (which no fusion has touched
+        yet), (B, dims[-1], H / 32, W / 32)."""
         x_img = (image.float() / 255.0 - self.mean) / self.std
         if lidar.shape[1] != self.cfg.lidar_in_channels:  # e.g. 4 summed channels, 2 wanted
             raise ValueError(
@@ -192,11 +202,15 @@ class IIDSU(nn.Module):
         x_lid = lid.clamp(max=self.cfg.lidar_clip_count) / self.cfg.lidar_clip_count
         x_img = self.image_encoder.stem(x_img)
         x_lid = self.lidar_encoder.stem(x_lid)
-        for img_stage, lid_stage, fuse in zip(
-            self.image_encoder.stages, self.lidar_encoder.stages, self.fusion
+        camera = None
+        for k, (img_stage, lid_stage, fuse) in enumerate(
+            zip(self.image_encoder.stages, self.lidar_encoder.stages, self.fusion)
         ):
-            x_img, x_lid = fuse(img_stage(x_img), lid_stage(x_lid), speed)
-        return self.to_dsu(torch.cat([x_img, x_lid], dim=1))  # (B, 1024, 8, 8)
+            x_img = img_stage(x_img)
+            if camera_alone:
+                camera = x_img if k == 0 else img_stage(camera)
+            x_img, x_lid = fuse(x_img, lid_stage(x_lid), speed)
+        return self.to_dsu(torch.cat([x_img, x_lid], dim=1)), camera  # (B, 1024, 8, 8)
 
     def forward(
         self,
@@ -208,11 +222,15 @@ class IIDSU(nn.Module):
         """Inputs as in `encode`, plus target_point (B, 2) float32, m, ego frame.
 
         Returns raw head outputs: planning (B, 4, 2) waypoints in m (ego frame); detection
-        (B, 21, R, R); bev (B, 3, R, R) logits; traffic (B, 2) logits; weather (B, 4) logits.
+        (B, 21, R, R); bev (B, 3, R, R) logits; traffic (B, 2) logits; weather (B, 4) logits;
+        with `cfg.camera_traffic`, camera_traffic (B, 2) logits of the camera encoder alone (a
+        training signal, ours: it makes the camera encoder find the lamps and signs itself).
         """
-        f = self.encode(image, lidar, speed)
+        f, camera = self._encode(image, lidar, speed, camera_alone=self.camera_traffic is not None)
         out = {}
         for name, head in self.heads.items():
             f_head = self.eca[name](f)
             out[name] = head(f_head, target_point, speed) if name == "planning" else head(f_head)
+        if camera is not None:
+            out["camera_traffic"] = self.camera_traffic(camera)
         return out
