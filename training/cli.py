@@ -73,6 +73,7 @@ TRAIN_FLAGS = {
     "val_fraction": "val_fraction",
     "val_towns": "val_towns",
     "seed": "seed",
+    "zoom_out": "zoom_out",
     "compile": "compile",
 }
 MODEL_FLAGS = {
@@ -126,6 +127,13 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         "--seed", type=int, metavar="N", help="seed of weights, split and data order (0)"
     )
     p.add_argument(
+        "--zoom-out",
+        type=_positive_float,
+        metavar="S",
+        help="camera zoom-out augmentation: half the training frames shrunk by a factor in "
+        "[S, 1) (0.55; 1: off; ours, the paper names no augmentation)",
+    )
+    p.add_argument(
         "--output-px", type=_positive_int, metavar="R", help="R, side of the dense heads' maps"
     )
     p.add_argument(
@@ -171,8 +179,10 @@ default; batch 32, 30 epochs, the warm-up + cosine schedule and the loss weights
 that planning dominates as Sec. III-C wishes; the BEV class weights (1, 1, 3: lane markings
 are thin) and the red-light / stop-sign positive weights (3, 3: both are the minority) are
 ours too, and so is the camera-only traffic-rule head (weight 0.1; --no-camera-traffic drops
-it), which makes the camera encoder find lamps and signs itself. The tiny preset's values (lr 1e-3, batch 8,
-R = 64) are ours, for CPUs; bench/learn.py measures what they learn on a held-out town.
+it), which makes the camera encoder find lamps and signs itself, and the camera zoom-out
+augmentation (--zoom-out 0.55), which shows it lamps at the sizes other junctions give. The
+tiny preset's values (lr 1e-3, batch 8, R = 64) are ours, for CPUs; bench/learn.py measures
+what they learn on a held-out town.
 TransFuser's fusion depth (8 blocks, 4 heads per layer) fills in what the paper leaves out.
 """
 

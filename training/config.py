@@ -124,6 +124,11 @@ class TrainConfig:
     val_fraction: float = 0.1  # share of episodes held out, unless val_towns is given
     val_towns: tuple[str, ...] = ()  # hold out these towns' episodes instead
     seed: int = 0
+    # Ours: camera zoom-out augmentation (training/augment.py). Half the training frames are
+    # shrunk about the image centre by a factor uniform in [zoom_out, 1), so that a signal lamp
+    # is seen at the sizes other junction widths give (1 or more: off).
+    zoom_out: float = 0.55
+    zoom_out_probability: float = 0.5
     compile: bool = False  # torch.compile the model (worth it on a GPU, slow to start)
     val_metrics: bool = True  # `train eval`'s metrics on the held-out frames every epoch
     # Loss weights: L = l_wp L_wp + l_O (alpha L_heat + beta L_reg) + l_M L_M
@@ -156,6 +161,7 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainConfig:
+        d = {"zoom_out": 1.0, **d}  # runs from before the augmentation had none
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
 
 

@@ -35,6 +35,7 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 import schemas
 from schemas import codecs
 from schemas.dataset import DatasetError, shard_files
+from training.augment import zoom_out, zoom_scale
 from training.errors import UserError
 from training.targets import MIN_LIDAR_POINTS, render_density, visible_boxes
 
@@ -207,8 +208,11 @@ def sensor_config(index: pd.DataFrame) -> dict | None:
     return json.loads(config) if config else None
 
 
-def _sample(rows: dict, i: int, output_px: int, min_lidar_points: int = MIN_LIDAR_POINTS) -> dict:
-    """Decode row `i` of `_row_arrays` output into one training sample (numpy arrays).
+def _sample(
+    rows: dict, i: int, output_px: int, min_lidar_points: int = MIN_LIDAR_POINTS, zoom: float = 1.0
+) -> dict:
+    """Decode row `i` of `_row_arrays` output into one training sample (numpy arrays), the
+    camera image zoomed out by `zoom` (training/augment.py; 1: as recorded).
 
     Inputs: image (3, 256, 256) uint8 RGB; lidar (4, 256, 256) uint8 counts ch0..ch3, or, when
     the rows carry `lidar_ground_t` (the single-frame ablation), (2, 256, 256): the current
@@ -225,7 +229,7 @@ def _sample(rows: dict, i: int, output_px: int, min_lidar_points: int = MIN_LIDA
     ground_t = rows[GROUND_T][i] if GROUND_T in rows else None
     image, lidar = model_inputs(rows["image"][i], rows["lidar_bev"][i], ground_t)
     return {
-        "image": image,
+        "image": zoom_out(image, zoom),
         "lidar": lidar,
         "speed": np.float32(rows["ego_speed"][i]),
         "target_point": rows["target_point"][i].astype(np.float32),
@@ -378,6 +382,8 @@ class FrameStream(IterableDataset):
             the `lidar_ground_t` column.
         min_lidar_points: detection targets keep agents with at least this many LiDAR returns
             at t (training/targets.py).
+        zoom_out: (smallest factor, probability) of the camera zoom-out augmentation
+            (training/augment.py), drawn per frame from seed, epoch and frame; None: none.
     """
 
     def __init__(
@@ -392,8 +398,10 @@ class FrameStream(IterableDataset):
         open_units: int = 64,
         single_frame_lidar: bool = False,
         min_lidar_points: int = MIN_LIDAR_POINTS,
+        zoom_out: tuple[float, float] | None = None,
     ):
         super().__init__()
+        self.zoom_out = zoom_out
         self.output_px, self.shuffle, self.seed = output_px, shuffle, seed
         self.buffer_size, self.rank, self.world = buffer_size, rank, world
         self.open_units = open_units
@@ -485,7 +493,11 @@ class FrameStream(IterableDataset):
             return [(arrays, i) for i in range(table.num_rows)]
 
         for arrays, i in self._order(read, worker, n_workers):
-            yield _sample(arrays, i, self.output_px, self.min_lidar_points)
+            zoom = 1.0
+            if self.zoom_out is not None:
+                key = (str(arrays["episode_id"][i]), int(arrays["frame"][i]))
+                zoom = zoom_scale(self.seed, self.epoch, *key, *self.zoom_out)
+            yield _sample(arrays, i, self.output_px, self.min_lidar_points, zoom)
 
 
 def make_loader(stream: FrameStream, batch_size: int, num_workers: int) -> DataLoader:

@@ -240,6 +240,7 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
         rank=proc.rank,
         world=proc.world,
         single_frame_lidar=model_cfg.single_frame_lidar,
+        zoom_out=(cfg.zoom_out, cfg.zoom_out_probability) if cfg.zoom_out < 1 else None,
     )
     val_stream = data.FrameStream(
         index[is_val],
