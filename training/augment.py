@@ -5,10 +5,10 @@ by repeating the edge pixels. The shrunk picture is what a camera on the same op
 s times the focal length (a wider view) sees in the middle: everything looks 1/s times as far
 away. It exists for the traffic lights (issue 13): at a junction the only signal head in view
 is the one across it, and the width of the junction sets how small its lamp looks. Trained on
-towns with two-lane junctions, the tiny model learnt "a small red lamp is a far light, not the
-one governing the ego" and missed the red lights of a town with three-lane arterials, whose
-governing lamps are 1.5-2 px wide. The labels do not change: they are distances along the road
-and states, not pixels.
+towns with two-lane junctions, the tiny model's camera-only red-light head found 46 % of
+downtown's red lights as recorded and 4 % with the image shrunk to 0.55, and missed those of a
+town with three-lane arterials, whose governing lamps are 1.5-2 px wide. The labels do not
+change: they are distances along the road and states, not pixels.
 """
 
 from __future__ import annotations

@@ -223,16 +223,13 @@ def _score(raw: dict[str, list], heads) -> dict:
         result["bev"] = {"iou": iou, "miou": float(np.mean(valid)) if valid else None}
     if "traffic" in heads:
         prob, true = np.concatenate(raw["traffic_prob"]), np.concatenate(raw["traffic_true"])
-        result["traffic"] = {
-            "red_light": binary_scores(prob[:, 0], true[:, 0]),
-            "stop_sign": binary_scores(prob[:, 1], true[:, 1]),
+        rule = lambda p: {  # noqa: E731
+            "red_light": binary_scores(p[:, 0], true[:, 0]),
+            "stop_sign": binary_scores(p[:, 1], true[:, 1]),
         }
+        result["traffic"] = rule(prob)
         if raw.get("camera_traffic_prob"):  # the camera-only head (ModelConfig.camera_traffic)
-            cam = np.concatenate(raw["camera_traffic_prob"])
-            result["camera_traffic"] = {
-                "red_light": binary_scores(cam[:, 0], true[:, 0]),
-                "stop_sign": binary_scores(cam[:, 1], true[:, 1]),
-            }
+            result["camera_traffic"] = rule(np.concatenate(raw["camera_traffic_prob"]))
     if "weather" in heads:
         pred, true = np.concatenate(raw["weather_pred"]), np.concatenate(raw["weather_true"])
         matrix = np.bincount(true * 4 + pred, minlength=16).reshape(4, 4)
