@@ -295,10 +295,9 @@ class Camera:
             # road, marking and sidewalk are materials 0..2
             flat = np.flatnonzero((mat <= Material.SIDEWALK) & (n[:, 2] > 0.9))
             cos_view = np.abs(facing[flat])
-            f = ((0.04 + 0.96 * (1 - cos_view) ** 5) * weather.wet)[:, None]
-            colour[flat] = (
-                colour[flat] * (1 - 0.35 * weather.wet) * (1 - f) + reflected_sky[hi[flat]] * f
-            )
+            f = (0.04 + 0.96 * (1 - cos_view) ** 5) * weather.wet  # numpy's powf: keep it here
+            dry = F32(1 - 0.35 * weather.wet)
+            shading.wet(colour, flat, hi, f, dry, reflected_sky)
 
         # Lamps glow (unshaded) in their signal's colour; distance fades to the weather's
         # fog/haze colour: fog + (colour - fog) * fade.
@@ -348,10 +347,11 @@ def _shadow_candidates(points: np.ndarray, scene: FrameScene, sun: np.ndarray) -
     hi = np.maximum(c, ends).max(0) + r.max() + 1
     shape = np.ceil(hi - lo).astype(int)[::-1]  # rows = y, cols = x
     grid = np.zeros(shape, np.uint8)
-    for a in range(len(c)):
-        p0 = tuple(int(v) for v in np.round(c[a] - lo))
-        p1 = tuple(int(v) for v in np.round(ends[a] - lo))
-        cv2.line(grid, p0, p1, 1, int(2 * r[a]) + 1)
+    starts = np.round(c - lo).astype(int).tolist()
+    stops = np.round(ends - lo).astype(int).tolist()
+    widths = (2 * r).astype(int) + 1
+    for p0, p1, width in zip(starts, stops, widths.tolist()):
+        cv2.line(grid, p0, p1, 1, width)
     lo32 = lo.astype(np.float32)
     return shading.in_grid(points, grid, lo32[0], lo32[1])
 

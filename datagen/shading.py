@@ -117,6 +117,19 @@ def light(albedo, normal, lambert, ambient, sun, gain):
 
 
 @numba.njit(cache=True, nogil=True)
+def wet(colour, flat, hit, fresnel, dry, reflected_sky):
+    """Wet ground, in place on colour (M, 3) float32: for each of the pixels `flat` (indices
+    into the hit pixels), colour x dry x (1 - fresnel) + the mirrored sky x fresnel, where
+    fresnel (len(flat),) float32 is Schlick's reflectance x wetness, dry (float32) the darkening,
+    and reflected_sky (N, 3) float32 is per pixel (hit[k] is hit pixel k's pixel)."""
+    for j in range(len(flat)):
+        k = flat[j]
+        f = fresnel[j]
+        for c in range(3):
+            colour[k, c] = colour[k, c] * dry * (F32(1.0) - f) + reflected_sky[hit[k], c] * f
+
+
+@numba.njit(cache=True, nogil=True)
 def compose(sky, hit, colour, material, tag, lamps, lamp_rgb, fade, fog):
     """The (N, 3) float32 image 0..1: the sky where nothing is hit; elsewhere lamps glow in
     their colour (full when lit: lamps[head] == slot, else 0.18), then every colour fades to
