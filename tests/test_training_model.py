@@ -178,7 +178,33 @@ def test_red_light_and_stop_sign_positives_weigh_traffic_pos_weight(tmp_path_fac
     out = {"planning": batch["waypoints"], "traffic": torch.zeros(2, 2)}  # p = 0.5 everywhere
     batch = {**batch, "traffic": torch.tensor([[1.0, 0.0], [0.0, 1.0]])}
     for w in ((1.0, 1.0), (3.0, 5.0)):
-        losses = compute_losses(out, batch, TrainConfig(traffic_pos_weight=w))
+        cfg = TrainConfig(traffic_pos_weight=w, traffic_context_weight=1.0)
+        losses = compute_losses(out, batch, cfg)
         # one positive and one negative per column: (w log 2 + log 2) / 2
         for term, wi in zip(("light", "stop"), w):
             assert losses[term].item() == pytest.approx((wi + 1) / 2 * math.log(2))
+
+
+def test_frames_whose_speed_contradicts_the_traffic_label_weigh_traffic_context_weight(
+    tmp_path_factory,
+):
+    batch = _batch(tmp_path_factory, n=4)
+    out = {"planning": batch["waypoints"], "traffic": torch.zeros(4, 2)}  # p = 0.5 everywhere
+    # red while moving (hard), red while stopped, none while stopped (hard), none while moving;
+    # stop sign: the other way round
+    truth = torch.tensor([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.0, 1.0]])
+    speed = torch.tensor([8.0, 0.0, 0.2, 5.0])
+    batch = {**batch, "traffic": truth, "speed": speed}
+    log2 = math.log(2)
+    for k in (1.0, 3.0):
+        cfg = TrainConfig(traffic_pos_weight=(1.0, 1.0), traffic_context_weight=k)
+        losses = compute_losses(out, batch, cfg)
+        # light: frames 0 and 2 are hard; stop sign: frames 1 (stopped, none) and 3 (moving,
+        # sign) are hard
+        assert losses["light"].item() == pytest.approx((2 * k + 2) / 4 * log2)
+        assert losses["stop"].item() == pytest.approx((2 * k + 2) / 4 * log2)
+    # old runs resume without the weighting
+    saved = TrainConfig().to_dict()
+    del saved["traffic_context_weight"]
+    assert TrainConfig.from_dict(saved).traffic_context_weight == 1.0
+    assert TrainConfig().traffic_context_weight == 3.0

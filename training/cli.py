@@ -74,6 +74,7 @@ TRAIN_FLAGS = {
     "val_towns": "val_towns",
     "seed": "seed",
     "zoom_out": "zoom_out",
+    "traffic_context_weight": "traffic_context_weight",
     "compile": "compile",
 }
 MODEL_FLAGS = {
@@ -134,6 +135,13 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         "[S, 1) (0.55; 1: off; ours, the paper names no augmentation)",
     )
     p.add_argument(
+        "--traffic-context-weight",
+        type=_positive_float,
+        metavar="W",
+        help="weight in L_light and L_sign of the frames where the ego's speed contradicts the "
+        "label (red or stop sign while moving, neither while stopped) (3; 1: off; ours)",
+    )
+    p.add_argument(
         "--output-px", type=_positive_int, metavar="R", help="R, side of the dense heads' maps"
     )
     p.add_argument(
@@ -180,7 +188,10 @@ that planning dominates as Sec. III-C wishes; the BEV class weights (1, 1, 3: la
 are thin) and the red-light / stop-sign positive weights (3, 3: both are the minority) are
 ours too, and so is the camera-only traffic-rule head (weight 0.1; --no-camera-traffic drops
 it), which makes the camera encoder find lamps and signs itself, and the camera zoom-out
-augmentation (--zoom-out 0.55), which shows it lamps at the sizes other junctions give. The
+augmentation (--zoom-out 0.55), which shows it lamps at the sizes other junctions give, and
+the context weight (--traffic-context-weight 3): red lights and stop signs met while moving,
+and frames with neither while stopped, weigh 3x in L_light and L_sign, since the ego's speed
+alone predicts "red" when stopped. The
 tiny preset's values (lr 1e-3, batch 8, R = 64) are ours, for CPUs; bench/learn.py measures
 what they learn on a held-out town.
 TransFuser's fusion depth (8 blocks, 4 heads per layer) fills in what the paper leaves out.

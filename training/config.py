@@ -151,6 +151,10 @@ class TrainConfig:
     # ~15-25 % of the frames and a stop sign fewer; unweighted, the tiny model's red-light head
     # flipped to "never red" on a held-out town (F1 0.77 at epochs 1 and 3, 0.00 at the end).
     traffic_pos_weight: tuple[float, float] = (3.0, 3.0)
+    # Ours: frames where the ego's speed contradicts the traffic label's usual context (red
+    # light or stop sign while moving, neither while stopped) weigh this much in L_light and
+    # L_sign (losses.context_weights), against the "stopped means red" shortcut; 1 = off.
+    traffic_context_weight: float = 3.0
     alpha: float = 1.0
     beta: float = 1.0
     gamma: float = 1.0
@@ -161,7 +165,8 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainConfig:
-        d = {"zoom_out": 1.0, **d}  # runs from before the augmentation had none
+        # runs from before these options had neither
+        d = {"zoom_out": 1.0, "traffic_context_weight": 1.0, **d}
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
 
 
