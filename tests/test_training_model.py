@@ -207,4 +207,4 @@ def test_frames_whose_speed_contradicts_the_traffic_label_weigh_traffic_context_
     saved = TrainConfig().to_dict()
     del saved["traffic_context_weight"]
     assert TrainConfig.from_dict(saved).traffic_context_weight == 1.0
-    assert TrainConfig().traffic_context_weight == 3.0
+    assert TrainConfig().traffic_context_weight == 1.0
