@@ -160,7 +160,8 @@ def main() -> None:
         ("short", args.short_frames, args.short_episode_seconds),
     ):
         if frames is None:  # a build cuts each town's quota per weather into episodes
-            frames = args.towns * len(schemas.WEATHERS) * round(secs * schemas.FRAME_RATE_HZ)
+            episode_frames = build.BuildConfig(towns=(), episode_seconds=secs).episode_frames
+            frames = args.towns * len(schemas.WEATHERS) * episode_frames
         r = run_build(args, frames, secs)
         print_build(name, r, args.workers, limit_fps, m["bare_cpu_ms"])
     main_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

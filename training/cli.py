@@ -139,7 +139,8 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         type=_positive_float,
         metavar="W",
         help="weight in L_light and L_sign of the frames where the ego's speed contradicts the "
-        "label (red or stop sign while moving, neither while stopped) (1 = off; 3 measured worse on held-out red lights, F1 0.33 vs 0.47; ours)",
+        "label (red or stop sign while moving, neither while stopped) (1 = off; 3 measured "
+        "worse on held-out red lights, F1 0.33 vs 0.47; ours)",
     )
     p.add_argument(
         "--output-px", type=_positive_int, metavar="R", help="R, side of the dense heads' maps"
