@@ -22,7 +22,7 @@ import sys
 # It must be set before torch is imported (this module imports it lazily); the user's wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from training.config import PRESETS, ModelConfig, TrainConfig
+from training.config import POOLS, PRESETS, ModelConfig, TrainConfig
 from training.errors import UserError
 
 FRAME_ORDER = (
@@ -85,6 +85,7 @@ MODEL_FLAGS = {
     "no_weather": "weather",
     "single_frame_lidar": "single_frame_lidar",
     "no_camera_traffic": "camera_traffic",
+    "traffic_pool": "traffic_pool",
 }
 RESUMABLE = {"shards", "out", "epochs", "workers", "compile"}  # may change on --resume
 
@@ -151,6 +152,13 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         default=None,
         help="without the camera-only traffic-rule training head (ours, not the paper's; on by "
         "default: without it the model read red lights from LiDAR context, not the lamps)",
+    )
+    p.add_argument(
+        "--traffic-pool",
+        choices=POOLS,
+        help="how the traffic-rule heads reduce the 8x8 map: avg (mean) or avgmax (mean and "
+        "maximum side by side, the default: a lamp fills one cell of 64; ours, the paper says "
+        "only 'reduced to 1024 dimensions')",
     )
     p.add_argument("--compile", action="store_true", default=None, help="torch.compile the model")
     p.add_argument("--device", choices=DEVICES, default="auto", help=DEVICE_HELP)

@@ -10,6 +10,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from training.config import POOLS
+
 DENSITY_CHANNELS = 7
 """Per timestep: 1 heatmap logit + 6 regression channels (dx, dy, log w, log l, sin, cos)."""
 DENSITY_TIMESTEPS = 3  # t, t+0.5 s, t+1.0 s
@@ -129,25 +131,35 @@ class BEVHead(nn.Module):
 
 
 class PooledHead(nn.Module):
-    """Average pool to a C-d vector, then one fully connected layer to logits."""
+    """Pool the (B, C, h, w) map over positions (`pool`, see POOLS), then one fully connected
+    layer to logits."""
 
-    def __init__(self, in_dim: int, n_out: int):
+    def __init__(self, in_dim: int, n_out: int, pool: str = "avg"):
         super().__init__()
-        self.fc = nn.Linear(in_dim, n_out)
+        if pool not in POOLS:
+            raise ValueError(f"pool must be one of {POOLS}, got {pool!r}")
+        self.pool = pool
+        self.fc = nn.Linear(in_dim * (2 if pool == "avgmax" else 1), n_out)
 
     def forward(self, f: torch.Tensor) -> torch.Tensor:
         """f (B, C, h, w) -> logits (B, n_out)."""
-        return self.fc(f.mean(dim=(2, 3)))
+        v = f.mean(dim=(2, 3))
+        if self.pool == "avgmax":
+            v = torch.cat([v, f.amax(dim=(2, 3))], dim=1)
+        return self.fc(v)
 
 
 class TrafficRuleHead(PooledHead):
     """Two independent sigmoid outputs (multi-label): red light ahead, stop sign ahead.
 
     "Red light" is the shards' `traffic_light == "red"`; a yellow light counts as not red.
+    The paper says only that "the feature is reduced to 1024 dimensions" (Sec. III-B); with
+    `pool="avgmax"` (ours, `ModelConfig.traffic_pool`) the maximum over positions sits beside
+    the mean, so that a lamp or sign filling one of the 8x8 cells is not averaged away.
     """
 
-    def __init__(self, in_dim: int):
-        super().__init__(in_dim, 2)
+    def __init__(self, in_dim: int, pool: str = "avg"):
+        super().__init__(in_dim, 2, pool)
 
 
 class WeatherHead(PooledHead):

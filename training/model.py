@@ -164,12 +164,14 @@ class IIDSU(nn.Module):
             ),
             "detection": lambda: DensityHead(C, steps, cfg.decoder_width),
             "bev": lambda: BEVHead(C, steps, cfg.decoder_width),
-            "traffic": lambda: TrafficRuleHead(C),
+            "traffic": lambda: TrafficRuleHead(C, cfg.traffic_pool),
             "weather": lambda: WeatherHead(C),
         }
         self.heads = nn.ModuleDict({name: make[name]() for name in cfg.heads})
         # Ours (ModelConfig.camera_traffic): the traffic rule from the camera encoder alone.
-        self.camera_traffic = TrafficRuleHead(cfg.dims[-1]) if cfg.has_camera_traffic else None
+        self.camera_traffic = (
+            TrafficRuleHead(cfg.dims[-1], cfg.traffic_pool) if cfg.has_camera_traffic else None
+        )
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), False)
 
