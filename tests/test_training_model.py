@@ -69,6 +69,44 @@ def test_camera_traffic_head_goes_with_the_traffic_head_and_old_checkpoints_lack
     assert ModelConfig.from_dict(old).camera_traffic is False
 
 
+def test_traffic_pool_keeps_a_one_cell_signal_that_the_mean_dilutes():
+    from training.heads import TrafficRuleHead
+
+    torch.manual_seed(0)
+    # one channel lit in one of the 64 cells (a lamp), against the same map without it
+    lamp = torch.zeros(1, 4, 8, 8)
+    lamp[0, 2, 3, 5] = 8.0
+    for pool, gap in (("avg", 8.0 / 64), ("avgmax", 8.0)):
+        head = TrafficRuleHead(4, pool)
+        with torch.no_grad():
+            head.fc.weight.zero_()
+            head.fc.weight[0, 2] = 1.0  # the mean's channel 2
+            if pool == "avgmax":
+                head.fc.weight[0, 4 + 2] = 1.0  # and its maximum
+            delta = head(lamp) - head(torch.zeros_like(lamp))
+        assert delta[0, 0].item() == pytest.approx(gap + (8.0 / 64 if pool == "avgmax" else 0))
+        assert delta[0, 1].item() == 0.0
+    with pytest.raises(ValueError, match="traffic_pool"):
+        dataclasses.replace(TINY, traffic_pool="median")
+
+
+def test_old_checkpoints_load_with_the_mean_pooled_traffic_heads():
+    from training.checkpoint import model_from_checkpoint
+    from training.config import ModelConfig
+
+    assert TINY.traffic_pool == "avgmax"
+    old_cfg = dataclasses.replace(TINY, traffic_pool="avg")
+    old = IIDSU(old_cfg)
+    saved = {k: v for k, v in dataclasses.asdict(old_cfg).items() if k != "traffic_pool"}
+    assert ModelConfig.from_dict(saved).traffic_pool == "avg"
+    state = {"model_config": saved, "model": old.state_dict()}
+    loaded = model_from_checkpoint(state).eval()
+    with torch.no_grad():
+        a, b = old.eval()(*_inputs(2)), loaded(*_inputs(2))
+    assert torch.equal(a["traffic"], b["traffic"])
+    assert torch.equal(a["camera_traffic"], b["camera_traffic"])
+
+
 def test_planner_reads_the_speed_and_old_checkpoints_load_without_it():
     from training.checkpoint import model_from_checkpoint
     from training.config import ModelConfig

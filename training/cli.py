@@ -196,10 +196,11 @@ default; batch 32, 30 epochs, the warm-up + cosine schedule and the loss weights
 that planning dominates as Sec. III-C wishes; the BEV class weights (1, 1, 3: lane markings
 are thin) and the red-light / stop-sign positive weights (3, 3: both are the minority) are
 ours too, and so is the camera-only traffic-rule head (weight 0.1; --no-camera-traffic drops
-it), which makes the camera encoder find lamps and signs itself, and the camera zoom-out
-augmentation (--zoom-out 0.55), which shows it lamps at the sizes other junctions give, and
-an optional context weight (--traffic-context-weight W, off by default: 3 measured worse),
-for frames where the ego's speed contradicts the red-light or stop-sign label. The
+it), which makes the camera encoder find lamps and signs itself, the traffic-rule heads'
+mean-and-maximum pooling (--traffic-pool avgmax: a lamp fills one of 64 cells), the camera
+zoom-out augmentation (--zoom-out 0.55), which shows it lamps at the sizes other junctions
+give, and an optional context weight (--traffic-context-weight W, off by default: 3 measured
+worse), for frames where the ego's speed contradicts the red-light or stop-sign label. The
 tiny preset's values (lr 1e-3, batch 8, R = 64) are ours, for CPUs; bench/learn.py measures
 what they learn on a held-out town.
 TransFuser's fusion depth (8 blocks, 4 heads per layer) fills in what the paper leaves out.
