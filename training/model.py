@@ -154,7 +154,10 @@ class IIDSU(nn.Module):
             TransFuserLayer(d, cfg.fusion_tokens, cfg.fusion_blocks, cfg.fusion_heads)
             for d in cfg.dims
         )
-        self.to_dsu = nn.Conv2d(2 * cfg.dims[-1], cfg.feature_dim, kernel_size=1)
+        # Ours (ModelConfig.lamp_channels): signal-lamp maps from the camera's first stage.
+        k = cfg.lamp_channels
+        self.lamp = nn.Conv2d(cfg.dims[0], k, kernel_size=1) if k else None
+        self.to_dsu = nn.Conv2d(2 * cfg.dims[-1] + k, cfg.feature_dim, kernel_size=1)
         self.eca = nn.ModuleDict({name: ECA(cfg.feature_dim) for name in cfg.heads})
         steps = int(math.log2(cfg.output_px // cfg.feature_px))
         C = cfg.feature_dim
@@ -169,8 +172,9 @@ class IIDSU(nn.Module):
         }
         self.heads = nn.ModuleDict({name: make[name]() for name in cfg.heads})
         # Ours (ModelConfig.camera_traffic): the traffic rule from the camera encoder alone.
+        camera_dim = k if k else cfg.dims[-1]  # the lamp maps, else the camera's last stage
         self.camera_traffic = (
-            TrafficRuleHead(cfg.dims[-1], cfg.traffic_pool) if cfg.has_camera_traffic else None
+            TrafficRuleHead(camera_dim, cfg.traffic_pool) if cfg.has_camera_traffic else None
         )
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), False)
@@ -191,9 +195,12 @@ class IIDSU(nn.Module):
     def _encode(
         self, image: torch.Tensor, lidar: torch.Tensor, speed: torch.Tensor, camera_alone: bool
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """F_DSU and, with `camera_alone`, the camera encoder's last map without any fusion:
-        stages 2-4 run a second time on the first stage's output (which no fusion has touched
-        yet), (B, dims[-1], H / 32, W / 32)."""
+        """F_DSU and, with `camera_alone`, a map of the camera alone (no fusion has touched
+        it): the lamp maps (B, lamp_channels, H / 32, W / 32) when the model has them, else
+        stages 2-4 run a second time on the first stage's output, (B, dims[-1], H / 32, W / 32).
+
+        The lamp maps: a 1x1 conv on the camera's first stage (stride 4), max-pooled to F_DSU's
+        grid, so that a lamp a few pixels wide reaches F_DSU undiluted."""
         x_img = (image.float() / 255.0 - self.mean) / self.std
         if lidar.shape[1] != self.cfg.lidar_in_channels:  # e.g. 4 summed channels, 2 wanted
             raise ValueError(
@@ -204,15 +211,19 @@ class IIDSU(nn.Module):
         x_lid = lid.clamp(max=self.cfg.lidar_clip_count) / self.cfg.lidar_clip_count
         x_img = self.image_encoder.stem(x_img)
         x_lid = self.lidar_encoder.stem(x_lid)
-        camera = None
+        camera, lamps = None, []
         for k, (img_stage, lid_stage, fuse) in enumerate(
             zip(self.image_encoder.stages, self.lidar_encoder.stages, self.fusion)
         ):
             x_img = img_stage(x_img)
-            if camera_alone:
+            if k == 0 and self.lamp is not None:
+                lamps = [F.adaptive_max_pool2d(self.lamp(x_img), self.cfg.feature_px)]
+            elif camera_alone and self.lamp is None:
                 camera = x_img if k == 0 else img_stage(camera)
             x_img, x_lid = fuse(x_img, lid_stage(x_lid), speed)
-        return self.to_dsu(torch.cat([x_img, x_lid], dim=1)), camera  # (B, 1024, 8, 8)
+        if camera_alone and lamps:
+            camera = lamps[0]
+        return self.to_dsu(torch.cat([x_img, x_lid, *lamps], dim=1)), camera  # (B, 1024, 8, 8)
 
     def forward(
         self,
