@@ -90,21 +90,45 @@ def test_traffic_pool_keeps_a_one_cell_signal_that_the_mean_dilutes():
         dataclasses.replace(TINY, traffic_pool="median")
 
 
-def test_old_checkpoints_load_with_the_mean_pooled_traffic_heads():
+def test_old_checkpoints_load_with_mean_pooled_traffic_heads_and_no_lamp_maps():
     from training.checkpoint import model_from_checkpoint
     from training.config import ModelConfig
 
-    assert TINY.traffic_pool == "avgmax"
-    old_cfg = dataclasses.replace(TINY, traffic_pool="avg")
+    assert TINY.traffic_pool == "avgmax" and TINY.lamp_channels == 8
+    old_cfg = dataclasses.replace(TINY, traffic_pool="avg", lamp_channels=0)
     old = IIDSU(old_cfg)
-    saved = {k: v for k, v in dataclasses.asdict(old_cfg).items() if k != "traffic_pool"}
-    assert ModelConfig.from_dict(saved).traffic_pool == "avg"
+    assert old.lamp is None and old.camera_traffic.fc.in_features == TINY.dims[-1]
+    new = ("traffic_pool", "lamp_channels")
+    saved = {k: v for k, v in dataclasses.asdict(old_cfg).items() if k not in new}
+    assert ModelConfig.from_dict(saved) == old_cfg
     state = {"model_config": saved, "model": old.state_dict()}
     loaded = model_from_checkpoint(state).eval()
     with torch.no_grad():
         a, b = old.eval()(*_inputs(2)), loaded(*_inputs(2))
     assert torch.equal(a["traffic"], b["traffic"])
     assert torch.equal(a["camera_traffic"], b["camera_traffic"])
+
+
+def test_lamp_maps_keep_a_small_lamp_where_it_is_and_feed_f_dsu():
+    torch.manual_seed(0)
+    model = IIDSU(TINY).eval()
+    assert model.to_dsu.in_channels == 2 * TINY.dims[-1] + TINY.lamp_channels
+    image, lidar, speed, target = _inputs(1)
+    lit = image.clone()
+    lit[0, 0, 100:102, 200:202] = 255  # a 2x2 px red lamp: 32 px cells, row 3, column 6
+    with torch.no_grad():
+        a = model._encode(image, lidar, speed, camera_alone=True)
+        b = model._encode(lit, lidar, speed, camera_alone=True)
+    changed = (a[1] - b[1]).abs().amax(dim=(0, 1)) > 0  # (8, 8) cells of the lamp maps
+    assert changed[3, 6]
+    rows, cols = torch.nonzero(changed, as_tuple=True)  # only cells the first stage reaches
+    assert rows.min() >= 2 and rows.max() <= 3 and cols.min() >= 5 and cols.max() <= 6
+    assert not torch.equal(a[0], b[0])  # F_DSU sees it
+    with torch.no_grad():
+        model.lamp.weight.zero_()
+        model.lamp.bias.zero_()
+        c = model._encode(lit, lidar, speed, camera_alone=True)
+    assert not c[1].any()
 
 
 def test_planner_reads_the_speed_and_old_checkpoints_load_without_it():

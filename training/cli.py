@@ -86,6 +86,7 @@ MODEL_FLAGS = {
     "single_frame_lidar": "single_frame_lidar",
     "no_camera_traffic": "camera_traffic",
     "traffic_pool": "traffic_pool",
+    "lamp_channels": "lamp_channels",
 }
 RESUMABLE = {"shards", "out", "epochs", "workers", "compile"}  # may change on --resume
 
@@ -160,6 +161,13 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         "maximum side by side, the default: a lamp fills one cell of 64; ours, the paper says "
         "only 'reduced to 1024 dimensions')",
     )
+    p.add_argument(
+        "--lamp-channels",
+        type=_checked(int, lambda v: v >= 0, "0 or more"),
+        metavar="N",
+        help="signal-lamp maps from the camera's first stage (stride 4) into F_DSU and the "
+        "camera-only traffic head (8; 0: off; ours, a lamp is 1.5-3 px)",
+    )
     p.add_argument("--compile", action="store_true", default=None, help="torch.compile the model")
     p.add_argument("--device", choices=DEVICES, default="auto", help=DEVICE_HELP)
     p.add_argument(
@@ -197,7 +205,8 @@ that planning dominates as Sec. III-C wishes; the BEV class weights (1, 1, 3: la
 are thin) and the red-light / stop-sign positive weights (3, 3: both are the minority) are
 ours too, and so is the camera-only traffic-rule head (weight 0.1; --no-camera-traffic drops
 it), which makes the camera encoder find lamps and signs itself, the traffic-rule heads'
-mean-and-maximum pooling (--traffic-pool avgmax: a lamp fills one of 64 cells), the camera
+mean-and-maximum pooling (--traffic-pool avgmax: a lamp fills one of 64 cells) and
+signal-lamp maps from the camera's first stage (--lamp-channels 8), the camera
 zoom-out augmentation (--zoom-out 0.55), which shows it lamps at the sizes other junctions
 give, and an optional context weight (--traffic-context-weight W, off by default: 3 measured
 worse), for frames where the ego's speed contradicts the red-light or stop-sign label. The

@@ -7,6 +7,10 @@ feature F_DSU, one ECA module per head, and five heads.
                                                                       bev (B,3,R,R),
                                                                       traffic (B,2), weather (B,4)
 
+Ours (ModelConfig.lamp_channels): a 1x1 conv on the camera's first stage (stride 4) gives
+lamp maps, max-pooled to 8x8 and concatenated before the 1x1 conv, so that a signal lamp a few
+pixels wide reaches F_DSU; the camera-only traffic head (ModelConfig.camera_traffic) reads them.
+
     >>> from training.config import PRESETS
     >>> model = IIDSU(PRESETS["tiny"][0])
     >>> out = model(image, lidar, speed, target_point)   # dict: head name -> raw output
@@ -236,8 +240,9 @@ class IIDSU(nn.Module):
 
         Returns raw head outputs: planning (B, 4, 2) waypoints in m (ego frame); detection
         (B, 21, R, R); bev (B, 3, R, R) logits; traffic (B, 2) logits; weather (B, 4) logits;
-        with `cfg.camera_traffic`, camera_traffic (B, 2) logits of the camera encoder alone (a
-        training signal, ours: it makes the camera encoder find the lamps and signs itself).
+        with `cfg.camera_traffic`, camera_traffic (B, 2) logits of the camera alone (the lamp
+        maps, else the camera encoder run without fusion; a training signal, ours: it makes the
+        camera branch find the lamps and signs itself).
         """
         f, camera = self._encode(image, lidar, speed, camera_alone=self.camera_traffic is not None)
         out = {}
