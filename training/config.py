@@ -54,11 +54,12 @@ class ModelConfig:
     single_frame_lidar: bool = False  # LiDAR input: the current sweep only (training/model.py)
     # Ours, not the paper's: a training-time traffic-rule head on the camera alone
     # (training/model.py IIDSU.camera_traffic): it reads the lamp maps (lamp_channels), or,
-    # without them, stages 2-4 of the camera run again on the unfused first stage. Without it the tiny model read red lights from
-    # LiDAR context, not from the lamps: trained on a 16k-frame v10 build, its red-light F1 with
-    # a flat camera image was still 0.78 on grid_small and 0.36 on the held-out town (0.96 and
-    # 0.42 with the image), and a linear probe of the camera encoder alone found no red light
-    # (F1 0.37 seen, 0.05 held out; bench/probe.py --head red [--blank image]).
+    # without them, stages 2-4 of the camera run again on the unfused first stage. Without it
+    # the tiny model read red lights from LiDAR context, not from the lamps: trained on a
+    # 16k-frame v10 build, its red-light F1 with a flat camera image was still 0.78 on
+    # grid_small and 0.36 on the held-out town (0.96 and 0.42 with the image), and a linear
+    # probe of the camera encoder alone found no red light (F1 0.37 seen, 0.05 held out;
+    # bench/probe.py --head red [--blank image]).
     camera_traffic: bool = True
     # Ours: how the traffic-rule heads (and the camera-only one) reduce their 8x8 map; the paper
     # says only "reduced to 1024 dimensions" (Sec. III-B). "avg" is the mean over positions, as

@@ -10,8 +10,6 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from training.config import POOLS
-
 DENSITY_CHANNELS = 7
 """Per timestep: 1 heatmap logit + 6 regression channels (dx, dy, log w, log l, sin, cos)."""
 DENSITY_TIMESTEPS = 3  # t, t+0.5 s, t+1.0 s
@@ -131,14 +129,12 @@ class BEVHead(nn.Module):
 
 
 class PooledHead(nn.Module):
-    """Pool the (B, C, h, w) map over positions (`pool`, see POOLS), then one fully connected
-    layer to logits."""
+    """Pool the (B, C, h, w) map over positions (`pool`, one of training.config.POOLS), then
+    one fully connected layer to logits."""
 
     def __init__(self, in_dim: int, n_out: int, pool: str = "avg"):
         super().__init__()
-        if pool not in POOLS:
-            raise ValueError(f"pool must be one of {POOLS}, got {pool!r}")
-        self.pool = pool
+        self.pool = pool  # ModelConfig checks it
         self.fc = nn.Linear(in_dim * (2 if pool == "avgmax" else 1), n_out)
 
     def forward(self, f: torch.Tensor) -> torch.Tensor:
