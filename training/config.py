@@ -73,8 +73,8 @@ class ModelConfig:
     # with the fused maps into the 1x1 conv that makes F_DSU; the camera-only traffic-rule head
     # reads them instead of re-running stages 2-4. A held-out lamp is 1.5-3 px: on the 16k v10
     # build a camera-only red-light classifier trained on seven towns scored on held-out
-    # arterial F1 0.21 reading the stride-32 map, 0.32 at stride 8 and 0.80 with 8 such
-    # stride-4 maps (1,000 steps each). 0 = off (the model of earlier runs).
+    # arterial F1 0.21 reading the stride-32 map, 0.32 at stride 8 and 0.63-0.80 with 8 such
+    # stride-4 maps (1,000 steps each; 3 seeds: 0.80, 0.68, 0.63). 0 = off (earlier runs).
     lamp_channels: int = 8
 
     def __post_init__(self):
