@@ -222,11 +222,10 @@ class IIDSU(nn.Module):
             x_img = img_stage(x_img)
             if k == 0 and self.lamp is not None:
                 lamps = [F.adaptive_max_pool2d(self.lamp(x_img), self.cfg.feature_px)]
+                camera = lamps[0] if camera_alone else None
             elif camera_alone and self.lamp is None:
                 camera = x_img if k == 0 else img_stage(camera)
             x_img, x_lid = fuse(x_img, lid_stage(x_lid), speed)
-        if camera_alone and lamps:
-            camera = lamps[0]
         return self.to_dsu(torch.cat([x_img, x_lid, *lamps], dim=1)), camera  # (B, 1024, 8, 8)
 
     def forward(
