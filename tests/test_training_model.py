@@ -94,11 +94,11 @@ def test_old_checkpoints_load_with_mean_pooled_traffic_heads_and_no_lamp_maps():
     from training.checkpoint import model_from_checkpoint
     from training.config import ModelConfig
 
-    assert TINY.traffic_pool == "avgmax" and TINY.lamp_channels == 8
-    old_cfg = dataclasses.replace(TINY, traffic_pool="avg", lamp_channels=0)
+    assert TINY.traffic_pool == "avgmax" and TINY.lamp_channels == 8 and TINY.traffic_residual
+    old_cfg = dataclasses.replace(TINY, traffic_pool="avg", lamp_channels=0, traffic_residual=False)
     old = IIDSU(old_cfg)
     assert old.lamp is None and old.camera_traffic.fc.in_features == TINY.dims[-1]
-    new = ("traffic_pool", "lamp_channels")
+    new = ("traffic_pool", "lamp_channels", "traffic_residual")
     saved = {k: v for k, v in dataclasses.asdict(old_cfg).items() if k not in new}
     assert ModelConfig.from_dict(saved) == old_cfg
     state = {"model_config": saved, "model": old.state_dict()}
@@ -107,6 +107,32 @@ def test_old_checkpoints_load_with_mean_pooled_traffic_heads_and_no_lamp_maps():
         a, b = old.eval()(*_inputs(2)), loaded(*_inputs(2))
     assert torch.equal(a["traffic"], b["traffic"])
     assert torch.equal(a["camera_traffic"], b["camera_traffic"])
+
+
+def test_fused_traffic_head_corrects_the_camera_heads_logits():
+    torch.manual_seed(0)
+    image, lidar, speed, target = _inputs(2)
+    image = torch.randint(0, 256, image.shape, dtype=torch.uint8)
+    model = IIDSU(TINY).eval()
+    with torch.no_grad():
+        out = model(image, lidar, speed, target)
+        own = model.heads["traffic"](model.eca["traffic"](model.encode(image, lidar, speed)))
+        assert torch.allclose(out["traffic"], own + out["camera_traffic"], atol=1e-6)
+        model.heads["traffic"].fc.weight.zero_()  # F_DSU adds nothing: the camera's logits
+        model.heads["traffic"].fc.bias.zero_()
+        out = model(image, lidar, speed, target)
+    assert torch.equal(out["traffic"], out["camera_traffic"])
+    # the paper's form (flag off), and off without the camera head it would add
+    for cfg in (
+        dataclasses.replace(TINY, traffic_residual=False),
+        dataclasses.replace(TINY, camera_traffic=False),
+    ):
+        torch.manual_seed(0)
+        model = IIDSU(cfg).eval()
+        with torch.no_grad():
+            out = model(image, lidar, speed, target)
+            own = model.heads["traffic"](model.eca["traffic"](model.encode(image, lidar, speed)))
+        assert torch.equal(out["traffic"], own)
 
 
 def test_lamp_maps_keep_a_small_lamp_where_it_is_and_feed_f_dsu():

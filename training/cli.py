@@ -87,6 +87,7 @@ MODEL_FLAGS = {
     "no_camera_traffic": "camera_traffic",
     "traffic_pool": "traffic_pool",
     "lamp_channels": "lamp_channels",
+    "no_traffic_residual": "traffic_residual",
 }
 RESUMABLE = {"shards", "out", "epochs", "workers", "compile"}  # may change on --resume
 
@@ -167,6 +168,13 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         metavar="N",
         help="signal-lamp maps from the camera's first stage (stride 4) into F_DSU and the "
         "camera-only traffic head (8; 0: off; ours, a lamp is 1.5-3 px)",
+    )
+    p.add_argument(
+        "--no-traffic-residual",
+        action="store_true",
+        default=None,
+        help="F_DSU's traffic-rule head predicts the logits on its own, as in the paper, instead "
+        "of a correction added to the camera-only head's (ours, the default)",
     )
     p.add_argument("--compile", action="store_true", default=None, help="torch.compile the model")
     p.add_argument("--device", choices=DEVICES, default="auto", help=DEVICE_HELP)

@@ -76,6 +76,13 @@ class ModelConfig:
     # arterial F1 0.21 reading the stride-32 map, 0.32 at stride 8 and 0.63-0.80 with 8 such
     # stride-4 maps (1,000 steps each; 3 seeds: 0.80, 0.68, 0.63). 0 = off (earlier runs).
     lamp_channels: int = 8
+    # Ours: F_DSU's traffic-rule head predicts a correction to the camera-only head's logits
+    # (IIDSU.forward: traffic = head(ECA(F_DSU)) + camera_traffic), so that the lamp evidence
+    # the camera head finds is the fused head's starting point, not one input among 2C + k that
+    # the fused head may overrule with per-town LiDAR context. Without it (16k v10 build, 6
+    # epochs) the camera-only head scored held-out arterial's red lights F1 0.66 and the fused
+    # head 0.42. Needs the camera-only head; off without it.
+    traffic_residual: bool = True
 
     def __post_init__(self):
         if len(self.depths) != 4 or len(self.dims) != 4:
@@ -108,6 +115,11 @@ class ModelConfig:
         return self.camera_traffic and self.traffic
 
     @property
+    def has_traffic_residual(self) -> bool:
+        """F_DSU's traffic-rule head adds its logits to the camera-only head's."""
+        return self.traffic_residual and self.has_camera_traffic
+
+    @property
     def lidar_in_channels(self) -> int:
         """Channels of the LiDAR input: 4 (ground summed over t, t-1, t-2; above-ground at t,
         t-1, t-2), or 2 for the single-frame ablation (ground and above-ground at t)."""
@@ -129,6 +141,7 @@ class ModelConfig:
             "camera_traffic": False,
             "traffic_pool": "avg",
             "lamp_channels": 0,
+            "traffic_residual": False,
             **d,
         }
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})

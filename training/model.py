@@ -241,13 +241,16 @@ class IIDSU(nn.Module):
         (B, 21, R, R); bev (B, 3, R, R) logits; traffic (B, 2) logits; weather (B, 4) logits;
         with `cfg.camera_traffic`, camera_traffic (B, 2) logits of the camera alone (the lamp
         maps, else the camera encoder run without fusion; a training signal, ours: it makes the
-        camera branch find the lamps and signs itself).
+        camera branch find the lamps and signs itself). With `cfg.traffic_residual` (ours) the
+        traffic logits are F_DSU's head's plus camera_traffic's.
         """
         f, camera = self._encode(image, lidar, speed, camera_alone=self.camera_traffic is not None)
         out = {}
+        if camera is not None:
+            out["camera_traffic"] = self.camera_traffic(camera)
         for name, head in self.heads.items():
             f_head = self.eca[name](f)
             out[name] = head(f_head, target_point, speed) if name == "planning" else head(f_head)
-        if camera is not None:
-            out["camera_traffic"] = self.camera_traffic(camera)
+        if self.cfg.has_traffic_residual:  # ours: F_DSU corrects the camera's traffic logits
+            out["traffic"] = out["traffic"] + out["camera_traffic"]
         return out
