@@ -214,7 +214,9 @@ are thin) and the red-light / stop-sign positive weights (3, 3: both are the min
 ours too, and so is the camera-only traffic-rule head (weight 0.1; --no-camera-traffic drops
 it), which makes the camera encoder find lamps and signs itself, the traffic-rule heads'
 mean-and-maximum pooling (--traffic-pool avgmax: a lamp fills one of 64 cells) and
-signal-lamp maps from the camera's first stage (--lamp-channels 8), the camera
+signal-lamp maps from the camera's first stage (--lamp-channels 8), F_DSU's traffic head
+predicting a correction to the camera-only head's logits (--no-traffic-residual: on its own,
+as in the paper), the camera
 zoom-out augmentation (--zoom-out 0.55), which shows it lamps at the sizes other junctions
 give, and an optional context weight (--traffic-context-weight W, off by default: 3 measured
 worse), for frames where the ego's speed contradicts the red-light or stop-sign label. The

@@ -9,7 +9,8 @@ feature F_DSU, one ECA module per head, and five heads.
 
 Ours (ModelConfig.lamp_channels): a 1x1 conv on the camera's first stage (stride 4) gives
 lamp maps, max-pooled to 8x8 and concatenated before the 1x1 conv, so that a signal lamp a few
-pixels wide reaches F_DSU; the camera-only traffic head (ModelConfig.camera_traffic) reads them.
+pixels wide reaches F_DSU; the camera-only traffic head (ModelConfig.camera_traffic) reads them,
+and F_DSU's traffic head adds its logits to that head's (ModelConfig.traffic_residual).
 
     >>> from training.config import PRESETS
     >>> model = IIDSU(PRESETS["tiny"][0])
