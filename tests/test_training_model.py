@@ -135,6 +135,28 @@ def test_fused_traffic_head_corrects_the_camera_heads_logits():
         assert torch.equal(out["traffic"], own)
 
 
+def test_traffic_residual_dropout_drops_the_correction_in_training_only():
+    torch.manual_seed(0)
+    image, lidar, speed, target = _inputs(64)
+    image = torch.randint(0, 256, image.shape, dtype=torch.uint8)
+    model = IIDSU(dataclasses.replace(TINY, traffic_residual_dropout=0.5))
+    with torch.no_grad():
+        model.eval()
+        kept = model(image, lidar, speed, target)
+        correction = kept["traffic"] - kept["camera_traffic"]
+        model.train()
+        torch.manual_seed(1)
+        out = model(image, lidar, speed, target)
+    # LayerNorm encoders and drop_path 0 in tiny: train mode changes only this dropout
+    assert torch.allclose(out["camera_traffic"], kept["camera_traffic"], atol=1e-5)
+    got = out["traffic"] - out["camera_traffic"]
+    dropped = got.abs() < 1e-6
+    assert 0.3 < dropped.float().mean() < 0.7  # about half of 128 logits
+    assert torch.allclose(got[~dropped], 2 * correction[~dropped], atol=1e-4)
+    with pytest.raises(ValueError, match="traffic_residual_dropout"):
+        dataclasses.replace(TINY, traffic_residual_dropout=1.0)
+
+
 def test_lamp_maps_keep_a_small_lamp_where_it_is_and_feed_f_dsu():
     torch.manual_seed(0)
     model = IIDSU(TINY).eval()

@@ -88,6 +88,7 @@ MODEL_FLAGS = {
     "traffic_pool": "traffic_pool",
     "lamp_channels": "lamp_channels",
     "no_traffic_residual": "traffic_residual",
+    "traffic_residual_dropout": "traffic_residual_dropout",
 }
 RESUMABLE = {"shards", "out", "epochs", "workers", "compile"}  # may change on --resume
 
@@ -175,6 +176,13 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         default=None,
         help="F_DSU's traffic-rule head predicts the logits on its own, as in the paper, instead "
         "of a correction added to the camera-only head's (ours, the default)",
+    )
+    p.add_argument(
+        "--traffic-residual-dropout",
+        type=_checked(float, lambda v: 0.0 <= v < 1.0, "in [0, 1)"),
+        metavar="P",
+        help="in training, drop F_DSU's correction of each traffic logit with probability P "
+        "(dropout; 0: off, the default; ours)",
     )
     p.add_argument("--compile", action="store_true", default=None, help="torch.compile the model")
     p.add_argument("--device", choices=DEVICES, default="auto", help=DEVICE_HELP)

@@ -83,12 +83,22 @@ class ModelConfig:
     # epochs) the camera-only head scored held-out arterial's red lights F1 0.66 and the fused
     # head 0.42. Needs the camera-only head; off without it.
     traffic_residual: bool = True
+    # Ours: in training, each frame's F_DSU correction of each traffic output is dropped with
+    # this probability (the logit is then the camera head's alone) and kept ones are scaled by
+    # 1 / (1 - p), as dropout does; at evaluation it is always kept. It makes the correction
+    # pay for its variance, against per-town context the fused head learns on the training
+    # towns. 0 = off.
+    traffic_residual_dropout: float = 0.0
 
     def __post_init__(self):
         if len(self.depths) != 4 or len(self.dims) != 4:
             raise ValueError("depths and dims need four stages each")
         if self.lamp_channels < 0:
             raise ValueError(f"lamp_channels must be >= 0, got {self.lamp_channels}")
+        if not 0.0 <= self.traffic_residual_dropout < 1.0:
+            raise ValueError(
+                f"traffic_residual_dropout must be in [0, 1), got {self.traffic_residual_dropout}"
+            )
         if self.traffic_pool not in POOLS:
             raise ValueError(f"traffic_pool must be one of {POOLS}, got {self.traffic_pool!r}")
         if self.input_px % 32:
@@ -142,6 +152,7 @@ class ModelConfig:
             "traffic_pool": "avg",
             "lamp_channels": 0,
             "traffic_residual": False,
+            "traffic_residual_dropout": 0.0,
             **d,
         }
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})

@@ -253,5 +253,6 @@ class IIDSU(nn.Module):
             f_head = self.eca[name](f)
             out[name] = head(f_head, target_point, speed) if name == "planning" else head(f_head)
         if self.cfg.has_traffic_residual:  # ours: F_DSU corrects the camera's traffic logits
-            out["traffic"] = out["traffic"] + out["camera_traffic"]
+            correction = F.dropout(out["traffic"], self.cfg.traffic_residual_dropout, self.training)
+            out["traffic"] = correction + out["camera_traffic"]
         return out
