@@ -247,11 +247,11 @@ class IIDSU(nn.Module):
         """
         f, camera = self._encode(image, lidar, speed, camera_alone=self.camera_traffic is not None)
         out = {}
-        if camera is not None:
-            out["camera_traffic"] = self.camera_traffic(camera)
         for name, head in self.heads.items():
             f_head = self.eca[name](f)
             out[name] = head(f_head, target_point, speed) if name == "planning" else head(f_head)
+        if camera is not None:
+            out["camera_traffic"] = self.camera_traffic(camera)
         if self.cfg.has_traffic_residual:  # ours: F_DSU corrects the camera's traffic logits
             correction = F.dropout(out["traffic"], self.cfg.traffic_residual_dropout, self.training)
             out["traffic"] = correction + out["camera_traffic"]
