@@ -18,8 +18,8 @@
 3. `train fit --config tiny --epochs 1` end to end on 200 synthetic frames (the demo's size);
 4. the paper config's parameter count, its FLOPs per training sample, its CPU training samples/s
    (float32, batch 4) and, where CUDA is available, its training samples/s, MFU and peak GPU
-   memory in bf16 (compare with the loader's samples/s per worker to see how many workers keep
-   the GPU fed).
+   memory in bf16 at batch 32 and 64 (and compiled, with --gpu-compile); compare with the
+   loader's samples/s per worker to see how many workers keep the GPU fed.
 """
 
 from __future__ import annotations
@@ -63,13 +63,21 @@ def batch_of(root: Path, output_px: int, batch_size: int, device: torch.device) 
 
 
 def train_rate(
-    preset: str, batch: dict, device: torch.device, steps: int, warmup: int = 3
+    preset: str,
+    batch: dict,
+    device: torch.device,
+    steps: int,
+    warmup: int = 3,
+    compile: bool = False,
 ) -> float:
-    """Training samples/s of `preset` on `batch` (bf16 autocast on CUDA, as `train fit`)."""
+    """Training samples/s of `preset` on `batch` (bf16 autocast on CUDA, as `train fit`;
+    `compile`: torch.compile'd as `train fit --compile`, its compile time in the warm-up)."""
     model_cfg, train_cfg = PRESETS[preset]
     torch.manual_seed(0)
     model = IIDSU(model_cfg).to(device, memory_format=torch.channels_last)
     optimizer = fit.make_optimizer(model, train_cfg)
+    if compile:
+        model = torch.compile(model)
     cuda = device.type == "cuda"
 
     def step():
@@ -162,6 +170,11 @@ def main() -> None:
         help="timed CPU training steps of the paper config at batch 4 (0: skip; ~1 min)",
     )
     parser.add_argument(
+        "--gpu-compile",
+        action="store_true",
+        help="on CUDA, also the paper config under torch.compile (compiling takes minutes)",
+    )
+    parser.add_argument(
         "--loader-frames", type=int, default=200, help="frames per loader epoch (200)"
     )
     args = parser.parse_args()
@@ -235,21 +248,27 @@ def main() -> None:
             )
         if torch.cuda.is_available():
             gpu = torch.device("cuda")
-            batch = batch_of(root, paper_model.output_px, paper_train.batch_size, gpu)
-            torch.cuda.reset_peak_memory_stats()
-            rate = train_rate("paper", batch, gpu, args.steps)
             name = torch.cuda.get_device_name()
             peak = next((v for k, v in BF16_PEAK_FLOPS.items() if k in name), None)
-            mfu = (
-                f"MFU {rate * flops / peak:.1%} of {peak / 1e12:.0f} TFLOP/s"
-                if peak
-                else "MFU: peak unknown"
-            )
-            print(
-                f"   {name}, bf16, batch {paper_train.batch_size}: "
-                f"{rate:.1f} training samples/s ({mfu}); peak GPU memory "
-                f"{torch.cuda.max_memory_allocated() / 2**30:.1f} GiB"
-            )
+            runs = [(paper_train.batch_size, False), (2 * paper_train.batch_size, False)]
+            runs += [(paper_train.batch_size, True)] if args.gpu_compile else []
+            for b, compiled in runs:
+                batch = batch_of(root, paper_model.output_px, b, gpu)
+                torch.cuda.reset_peak_memory_stats()
+                t0 = time.perf_counter()
+                rate = train_rate("paper", batch, gpu, args.steps, compile=compiled)
+                mfu = (
+                    f"MFU {rate * flops / peak:.1%} of {peak / 1e12:.0f} TFLOP/s"
+                    if peak
+                    else "MFU: peak unknown"
+                )
+                print(
+                    f"   {name}, bf16, batch {b}{', torch.compile' if compiled else ''}: "
+                    f"{rate:.1f} training samples/s ({mfu}); peak GPU memory "
+                    f"{torch.cuda.max_memory_allocated() / 2**30:.1f} GiB; "
+                    f"{time.perf_counter() - t0:.0f} s with warm-up",
+                    flush=True,
+                )
         else:
             print("   GPU: not measured (no CUDA device)")
 

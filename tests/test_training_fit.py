@@ -44,13 +44,16 @@ def test_lr_warms_up_then_decays_by_cosine():
     assert lrs[-1] == pytest.approx(0.01, abs=1e-3)
 
 
-def test_resume_continues_with_identical_state(shards, tmp_path, monkeypatch):
+@pytest.mark.parametrize("ema_decay", [0.0, 0.5])
+def test_resume_continues_with_identical_state(shards, tmp_path, monkeypatch, ema_decay):
     # Stochastic depth on, so the restored RNG state matters.
     model_cfg = dataclasses.replace(TINY_MODEL, drop_path=0.2)
-    whole = fit.fit(model_cfg, _train_cfg(shards, tmp_path / "whole", epochs=2))
+    whole = fit.fit(
+        model_cfg, _train_cfg(shards, tmp_path / "whole", epochs=2, ema_decay=ema_decay)
+    )
 
     # The same run, interrupted as epoch 2 starts, then resumed.
-    cut = _train_cfg(shards, tmp_path / "cut", epochs=2)
+    cut = _train_cfg(shards, tmp_path / "cut", epochs=2, ema_decay=ema_decay)
     set_epoch = data.FrameStream.set_epoch
 
     def interrupt(self, epoch):
@@ -67,8 +70,10 @@ def test_resume_continues_with_identical_state(shards, tmp_path, monkeypatch):
 
     a, b = (torch.load(p, weights_only=True) for p in (whole, resumed))
     assert (a["epoch"], a["step"]) == (b["epoch"], b["step"]) == (2, 6)
-    for k in a["model"]:
-        assert torch.equal(a["model"][k], b["model"][k]), k
+    assert ("train_model" in a) == ("train_model" in b) == (ema_decay > 0)
+    for weights in ("model", "train_model") if ema_decay else ("model",):
+        for k in a[weights]:
+            assert torch.equal(a[weights][k], b[weights][k]), (weights, k)
     for (i, sa), (j, sb) in zip(a["optimizer"]["state"].items(), b["optimizer"]["state"].items()):
         assert i == j and all(torch.equal(sa[k], sb[k]) for k in sa)
     assert torch.equal(a["rng"][0]["torch"], b["rng"][0]["torch"])
@@ -86,6 +91,25 @@ def test_resume_continues_with_identical_state(shards, tmp_path, monkeypatch):
         ]
 
     assert steps(whole) == steps(resumed) and len(steps(whole)) == 2
+
+
+def test_ema_is_the_checkpoints_model_and_tracks_the_trained_weights(shards, tmp_path):
+    def weights(decay: float) -> tuple[dict, dict]:
+        out = tmp_path / str(decay)
+        state = torch.load(
+            fit.fit(TINY_MODEL, _train_cfg(shards, out, epochs=1, ema_decay=decay)),
+            weights_only=True,
+        )
+        return state["model"], state["train_model"]
+
+    # An average that forgets at once is the trained weights; a slow one lags behind them.
+    quick, trained = weights(1e-6)
+    slow, trained_too = weights(0.9)
+    floats = [k for k, v in trained.items() if v.is_floating_point()]
+    assert all(torch.equal(trained[k], trained_too[k]) for k in floats)  # EMA does not steer
+    assert all(torch.allclose(quick[k], trained[k], atol=1e-5) for k in floats)
+    moved = [k for k in floats if not torch.allclose(slow[k], trained[k], atol=1e-5)]
+    assert len(moved) > len(floats) // 2
 
 
 def test_ddp_runs_with_two_cpu_processes(shards, tmp_path):

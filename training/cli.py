@@ -75,6 +75,7 @@ TRAIN_FLAGS = {
     "seed": "seed",
     "zoom_out": "zoom_out",
     "traffic_context_weight": "traffic_context_weight",
+    "ema": "ema_decay",
     "compile": "compile",
 }
 MODEL_FLAGS = {
@@ -145,6 +146,13 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         help="weight in L_light and L_sign of the frames where the ego's speed contradicts the "
         "label (red or stop sign while moving, neither while stopped) (1 = off; 3 measured "
         "worse on held-out red lights, F1 0.33 vs 0.47; ours)",
+    )
+    p.add_argument(
+        "--ema",
+        type=_fraction,
+        metavar="D",
+        help="keep an exponential moving average of the weights with decay D per step; "
+        "validation and last.pt use it (0: off; ours)",
     )
     p.add_argument(
         "--output-px", type=_positive_int, metavar="R", help="R, side of the dense heads' maps"

@@ -185,6 +185,9 @@ class TrainConfig:
     zoom_out: float = 0.55
     zoom_out_probability: float = 0.5
     compile: bool = False  # torch.compile the model (worth it on a GPU, slow to start)
+    # Ours: decay of an exponential moving average of the weights, updated every step; the
+    # average is what validation scores and last.pt's "model" holds (training/fit.py). 0 = off.
+    ema_decay: float = 0.0
     val_metrics: bool = True  # `train eval`'s metrics on the held-out frames every epoch
     # Loss weights: L = l_wp L_wp + l_O (alpha L_heat + beta L_reg) + l_M L_M
     #                   + l_tf (gamma L_light + delta L_sign) + l_wc L_wc   (Sec. III-C).
@@ -221,7 +224,7 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, d: dict) -> TrainConfig:
         # runs from before these options had neither
-        d = {"zoom_out": 1.0, "traffic_context_weight": 1.0, **d}
+        d = {"zoom_out": 1.0, "traffic_context_weight": 1.0, "ema_decay": 0.0, **d}
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
 
 

@@ -14,6 +14,11 @@ the same scalars go to OUT/tensorboard/; `train curves --run OUT` draws them to 
 it. A resumed run takes weights, optimizer moments, step, epoch and RNG states from last.pt,
 and the data order is a function of (seed, epoch), so it continues exactly (the logs are cut
 back to the checkpoint's step first).
+
+With `ema_decay` > 0 (ours) the loop also keeps an exponential moving average of the weights
+and buffers (torch.optim.swa_utils.AveragedModel), updated after every optimizer step; the
+per-epoch validation scores the average, and last.pt's "model" holds it (what `train eval`,
+`drive eval` and every other reader load), its "train_model" the weights AdamW steps.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ from pathlib import Path
 import torch
 import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from tqdm import tqdm
 
 from training import data
@@ -268,7 +274,7 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
                 f"{out / CHECKPOINT} has finished {state['epoch']} of {cfg.epochs} epochs; "
                 "give a larger --epochs to train on"
             )
-        model.load_state_dict(state["model"])
+        model.load_state_dict(state.get("train_model", state["model"]))
         optimizer.load_state_dict(state["optimizer"])
         first_epoch, step = state["epoch"], state["step"]
         rng = state["rng"]
@@ -276,6 +282,14 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
     else:
         torch.manual_seed(cfg.seed + proc.rank)  # stochastic depth differs between ranks
     raw_model = model
+    ema = None  # the averaged weights; the weights evaluated and saved as "model"
+    if cfg.ema_decay > 0:
+        ema = AveragedModel(
+            raw_model, multi_avg_fn=get_ema_multi_avg_fn(cfg.ema_decay), use_buffers=True
+        )
+        if state is not None and "train_model" in state:
+            ema.module.load_state_dict(state["model"])
+            ema.n_averaged.fill_(state["step"])  # not 0: the next update averages, not copies
     if cfg.compile:
         model = torch.compile(model)
     if proc.world > 1:
@@ -325,6 +339,8 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
             terms["total"].backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
             optimizer.step()
+            if ema is not None:
+                ema.update_parameters(raw_model)
             step += 1
             n = len(batch["speed"])
             seen += n
@@ -351,6 +367,7 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
         sums["n"] = torch.tensor(float(seen), device=proc.device)
         train = _all_sum(sums, proc)
         n_train = train.pop("n")
+        scored = raw_model if ema is None else ema.module  # what validation and readers see
         metrics = {
             "epoch": epoch + 1,
             "step": step,
@@ -358,13 +375,13 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
             "time_s": round(elapsed, 3),
             "samples_per_s": round(n_train / elapsed, 2),
             "train": {k: v / n_train for k, v in train.items()},
-            "val": estimate_loss(raw_model, val_loader, cfg, proc),
+            "val": estimate_loss(scored, val_loader, cfg, proc),
         }
         if cfg.val_metrics and len(val_stream.units):
             from training.evaluate import evaluate, headline  # evaluate imports this module
 
             # every rank measures its share; the metrics are of all the held-out frames
-            metrics["val_metrics"] = headline(evaluate(raw_model, val_loader, proc.device, proc))
+            metrics["val_metrics"] = headline(evaluate(scored, val_loader, proc.device, proc))
         rngs = [None] * proc.world
         if proc.world > 1:
             dist.all_gather_object(rngs, _rng_state(proc.device))
@@ -372,7 +389,8 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
             rngs = [_rng_state(proc.device)]
         if proc.master:
             checkpoint = {
-                "model": raw_model.state_dict(),
+                "model": scored.state_dict(),
+                **({} if ema is None else {"train_model": raw_model.state_dict()}),
                 "optimizer": optimizer.state_dict(),
                 "model_config": model_cfg.to_dict(),
                 "train_config": cfg.to_dict(),
