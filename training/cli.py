@@ -190,7 +190,7 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         type=_checked(float, lambda v: 0.0 <= v < 1.0, "in [0, 1)"),
         metavar="P",
         help="in training, drop F_DSU's correction of each traffic logit with probability P "
-        "(dropout; 0: off, the default; ours)",
+        "(dropout; 0.5; 0: off; ours)",
     )
     p.add_argument("--compile", action="store_true", default=None, help="torch.compile the model")
     p.add_argument("--device", choices=DEVICES, default="auto", help=DEVICE_HELP)
@@ -232,7 +232,8 @@ it), which makes the camera encoder find lamps and signs itself, the traffic-rul
 mean-and-maximum pooling (--traffic-pool avgmax: a lamp fills one of 64 cells) and
 signal-lamp maps from the camera's first stage (--lamp-channels 8), F_DSU's traffic head
 predicting a correction to the camera-only head's logits (--no-traffic-residual: on its own,
-as in the paper), the camera
+as in the paper) with that correction dropped for half the training frames
+(--traffic-residual-dropout 0.5), the camera
 zoom-out augmentation (--zoom-out 0.55), which shows it lamps at the sizes other junctions
 give, and an optional context weight (--traffic-context-weight W, off by default: 3 measured
 worse), for frames where the ego's speed contradicts the red-light or stop-sign label. The

@@ -87,8 +87,10 @@ class ModelConfig:
     # this probability (the logit is then the camera head's alone) and kept ones are scaled by
     # 1 / (1 - p), as dropout does; at evaluation it is always kept. It makes the correction
     # pay for its variance, against per-town context the fused head learns on the training
-    # towns. 0 = off.
-    traffic_residual_dropout: float = 0.0
+    # towns. 0 = off. On the 16k v10 check (6 epochs, one run each) 0.5 raised held-out
+    # arterial's red-light F1 from 0.63 to 0.75 (recall within 5 m of the stop line from 0.16
+    # to 0.61 on 800 sampled frames) and stop signs from 0.76 to 0.81.
+    traffic_residual_dropout: float = 0.5
 
     def __post_init__(self):
         if len(self.depths) != 4 or len(self.dims) != 4:
