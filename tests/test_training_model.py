@@ -179,6 +179,34 @@ def test_lamp_maps_keep_a_small_lamp_where_it_is_and_feed_f_dsu():
     assert not c[1].any()
 
 
+def test_pixel_lamp_maps_keep_a_one_pixel_lamp_in_its_cell():
+    from training.config import ModelConfig
+
+    torch.manual_seed(0)
+    cfg = dataclasses.replace(TINY, pixel_lamp_channels=4)
+    model = IIDSU(cfg).eval()
+    k = TINY.lamp_channels
+    assert model.to_dsu.in_channels == 2 * TINY.dims[-1] + k + 4
+    assert model.camera_traffic.fc.in_features == 2 * (k + 4)  # avgmax pooling: two per map
+    image, lidar, speed, target = _inputs(1)
+    lit = image.clone()
+    lit[0, 0, 100, 200] = 255  # one red pixel: 32 px cells, row 3, column 6
+    with torch.no_grad():
+        a = model._encode(image, lidar, speed, camera_alone=True)
+        b = model._encode(lit, lidar, speed, camera_alone=True)
+    pixel = (a[1][0, k:] - b[1][0, k:]).abs().amax(dim=0) > 0  # (8, 8) cells of the pixel maps
+    assert pixel[3, 6] and pixel.sum() == 1  # stride 1: no other cell sees that pixel
+    assert not torch.equal(a[0], b[0])  # F_DSU sees it
+    assert "camera_traffic" in model(lit, lidar, speed, target)
+    # without stage lamp maps the camera-only head reads the pixel maps alone
+    alone = IIDSU(dataclasses.replace(cfg, lamp_channels=0))
+    assert alone.camera_traffic.fc.in_features == 2 * 4 and alone.lamp is None
+    saved = {key: v for key, v in dataclasses.asdict(TINY).items() if key != "pixel_lamp_channels"}
+    assert ModelConfig.from_dict(saved).pixel_lamp_channels == 0  # runs from before: off
+    with pytest.raises(ValueError, match="pixel_lamp_channels"):
+        dataclasses.replace(TINY, pixel_lamp_channels=-1)
+
+
 def test_planner_reads_the_speed_and_old_checkpoints_load_without_it():
     from training.checkpoint import model_from_checkpoint
     from training.config import ModelConfig
