@@ -183,7 +183,8 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         "--pixel-lamp-channels",
         type=_checked(int, lambda v: v >= 0, "0 or more"),
         metavar="N",
-        help="signal-lamp maps from a per-pixel MLP on the camera image (stride 1) beside them "
+        help="signal-lamp maps from per-pixel colour detectors on the camera image (stride 1) "
+        "beside them "
         "(0: off, the default; ours)",
     )
     p.add_argument(

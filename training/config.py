@@ -76,8 +76,8 @@ class ModelConfig:
     # arterial F1 0.21 reading the stride-32 map, 0.32 at stride 8 and 0.63-0.80 with 8 such
     # stride-4 maps (1,000 steps each; 3 seeds: 0.80, 0.68, 0.63). 0 = off (earlier runs).
     lamp_channels: int = 8
-    # Ours: pixel lamp channels. A per-pixel MLP on the normalised camera image (1x1 convs
-    # 3 -> 16 -> this many, GELU between) gives maps max-pooled to F_DSU's grid beside the lamp
+    # Ours: pixel lamp channels. Per-pixel colour detectors on the normalised camera image (a
+    # 1x1 conv 3 -> this many, then GELU) give maps max-pooled to F_DSU's grid beside the lamp
     # maps above, so that a lamp's colour is judged per pixel before any stride mixes it with
     # its surround (one threshold on the raw image's third-largest redness scores held-out
     # arterial F1 0.81). 0 = off (the default, and runs from before the option).

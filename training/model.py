@@ -38,8 +38,6 @@ from training.heads import (
 INPUTS = ("image", "lidar", "speed", "target_point")
 """Batch keys the model reads, in `IIDSU.forward`'s argument order."""
 
-PIXEL_LAMP_HIDDEN = 16  # channels between the pixel lamp MLP's two 1x1 convs
-
 IMAGENET_MEAN = (0.485, 0.456, 0.406)  # the camera is normalised as for ImageNet training
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
@@ -162,16 +160,12 @@ class IIDSU(nn.Module):
             for d in cfg.dims
         )
         # Ours (ModelConfig.lamp_channels, pixel_lamp_channels): signal-lamp maps from the
-        # camera's first stage and from a per-pixel MLP on the image.
+        # camera's first stage and from per-pixel colour detectors on the image.
         k = cfg.lamp_channels + cfg.pixel_lamp_channels
         self.lamp = nn.Conv2d(cfg.dims[0], cfg.lamp_channels, 1) if cfg.lamp_channels else None
         self.pixel_lamp = None
-        if cfg.pixel_lamp_channels:
-            self.pixel_lamp = nn.Sequential(
-                nn.Conv2d(3, PIXEL_LAMP_HIDDEN, 1),
-                nn.GELU(),
-                nn.Conv2d(PIXEL_LAMP_HIDDEN, cfg.pixel_lamp_channels, 1),
-            )
+        if cfg.pixel_lamp_channels:  # per-pixel colour detectors: a 1x1 conv and GELU
+            self.pixel_lamp = nn.Sequential(nn.Conv2d(3, cfg.pixel_lamp_channels, 1), nn.GELU())
         self.to_dsu = nn.Conv2d(2 * cfg.dims[-1] + k, cfg.feature_dim, kernel_size=1)
         self.eca = nn.ModuleDict({name: ECA(cfg.feature_dim) for name in cfg.heads})
         steps = int(math.log2(cfg.output_px // cfg.feature_px))
@@ -215,9 +209,9 @@ class IIDSU(nn.Module):
         model has them, else stages 2-4 run a second time on the first stage's output,
         (B, dims[-1], H / 32, W / 32).
 
-        The lamp maps: a 1x1 conv on the camera's first stage (stride 4) and a per-pixel MLP on
-        the image (stride 1), each max-pooled to F_DSU's grid, so that a lamp a few pixels wide
-        reaches F_DSU undiluted."""
+        The lamp maps: a 1x1 conv on the camera's first stage (stride 4) and per-pixel colour
+        detectors on the image (stride 1), each max-pooled to F_DSU's grid, so that a lamp a
+        few pixels wide reaches F_DSU undiluted."""
         x_img = (image.float() / 255.0 - self.mean) / self.std
         if lidar.shape[1] != self.cfg.lidar_in_channels:  # e.g. 4 summed channels, 2 wanted
             raise ValueError(
