@@ -95,10 +95,14 @@ def test_old_checkpoints_load_with_mean_pooled_traffic_heads_and_no_lamp_maps():
     from training.config import ModelConfig
 
     assert TINY.traffic_pool == "avgmax" and TINY.lamp_channels == 8 and TINY.traffic_residual
-    old_cfg = dataclasses.replace(TINY, traffic_pool="avg", lamp_channels=0, traffic_residual=False)
+    assert TINY.pixel_lamp_channels == 8
+    old_cfg = dataclasses.replace(
+        TINY, traffic_pool="avg", lamp_channels=0, pixel_lamp_channels=0, traffic_residual=False
+    )
     old = IIDSU(old_cfg)
-    assert old.lamp is None and old.camera_traffic.fc.in_features == TINY.dims[-1]
-    new = ("traffic_pool", "lamp_channels", "traffic_residual")
+    assert old.lamp is None and old.pixel_lamp is None
+    assert old.camera_traffic.fc.in_features == TINY.dims[-1]
+    new = ("traffic_pool", "lamp_channels", "pixel_lamp_channels", "traffic_residual")
     saved = {k: v for k, v in dataclasses.asdict(old_cfg).items() if k not in new}
     assert ModelConfig.from_dict(saved) == old_cfg
     state = {"model_config": saved, "model": old.state_dict()}
@@ -159,7 +163,8 @@ def test_traffic_residual_dropout_drops_the_correction_in_training_only():
 
 def test_lamp_maps_keep_a_small_lamp_where_it_is_and_feed_f_dsu():
     torch.manual_seed(0)
-    model = IIDSU(TINY).eval()
+    cfg = dataclasses.replace(TINY, pixel_lamp_channels=0)  # the first stage's maps alone
+    model = IIDSU(cfg).eval()
     assert model.to_dsu.in_channels == 2 * TINY.dims[-1] + TINY.lamp_channels
     image, lidar, speed, target = _inputs(1)
     lit = image.clone()
@@ -183,7 +188,7 @@ def test_pixel_lamp_maps_keep_a_one_pixel_lamp_in_its_cell():
     from training.config import ModelConfig
 
     torch.manual_seed(0)
-    cfg = dataclasses.replace(TINY, pixel_lamp_channels=4)
+    cfg = dataclasses.replace(TINY, pixel_lamp_channels=4)  # the tiny config has 8
     model = IIDSU(cfg).eval()
     k = TINY.lamp_channels
     assert model.to_dsu.in_channels == 2 * TINY.dims[-1] + k + 4
