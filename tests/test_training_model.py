@@ -95,10 +95,14 @@ def test_old_checkpoints_load_with_mean_pooled_traffic_heads_and_no_lamp_maps():
     from training.config import ModelConfig
 
     assert TINY.traffic_pool == "avgmax" and TINY.lamp_channels == 8 and TINY.traffic_residual
-    old_cfg = dataclasses.replace(TINY, traffic_pool="avg", lamp_channels=0, traffic_residual=False)
+    assert TINY.pixel_lamp_channels == 8
+    old_cfg = dataclasses.replace(
+        TINY, traffic_pool="avg", lamp_channels=0, pixel_lamp_channels=0, traffic_residual=False
+    )
     old = IIDSU(old_cfg)
-    assert old.lamp is None and old.camera_traffic.fc.in_features == TINY.dims[-1]
-    new = ("traffic_pool", "lamp_channels", "traffic_residual")
+    assert old.lamp is None and old.pixel_lamp is None
+    assert old.camera_traffic.fc.in_features == TINY.dims[-1]
+    new = ("traffic_pool", "lamp_channels", "pixel_lamp_channels", "traffic_residual")
     saved = {k: v for k, v in dataclasses.asdict(old_cfg).items() if k not in new}
     assert ModelConfig.from_dict(saved) == old_cfg
     state = {"model_config": saved, "model": old.state_dict()}
@@ -159,7 +163,8 @@ def test_traffic_residual_dropout_drops_the_correction_in_training_only():
 
 def test_lamp_maps_keep_a_small_lamp_where_it_is_and_feed_f_dsu():
     torch.manual_seed(0)
-    model = IIDSU(TINY).eval()
+    cfg = dataclasses.replace(TINY, pixel_lamp_channels=0)  # the first stage's maps alone
+    model = IIDSU(cfg).eval()
     assert model.to_dsu.in_channels == 2 * TINY.dims[-1] + TINY.lamp_channels
     image, lidar, speed, target = _inputs(1)
     lit = image.clone()
@@ -177,6 +182,34 @@ def test_lamp_maps_keep_a_small_lamp_where_it_is_and_feed_f_dsu():
         model.lamp.bias.zero_()
         c = model._encode(lit, lidar, speed, camera_alone=True)
     assert not c[1].any()
+
+
+def test_pixel_lamp_maps_keep_a_one_pixel_lamp_in_its_cell():
+    from training.config import ModelConfig
+
+    torch.manual_seed(0)
+    cfg = dataclasses.replace(TINY, pixel_lamp_channels=4)  # the tiny config has 8
+    model = IIDSU(cfg).eval()
+    k = TINY.lamp_channels
+    assert model.to_dsu.in_channels == 2 * TINY.dims[-1] + k + 4
+    assert model.camera_traffic.fc.in_features == 2 * (k + 4)  # avgmax pooling: two per map
+    image, lidar, speed, target = _inputs(1)
+    lit = image.clone()
+    lit[0, 0, 100, 200] = 255  # one red pixel: 32 px cells, row 3, column 6
+    with torch.no_grad():
+        a = model._encode(image, lidar, speed, camera_alone=True)
+        b = model._encode(lit, lidar, speed, camera_alone=True)
+    pixel = (a[1][0, k:] - b[1][0, k:]).abs().amax(dim=0) > 0  # (8, 8) cells of the pixel maps
+    assert pixel[3, 6] and pixel.sum() == 1  # stride 1: no other cell sees that pixel
+    assert not torch.equal(a[0], b[0])  # F_DSU sees it
+    assert "camera_traffic" in model(lit, lidar, speed, target)
+    # without stage lamp maps the camera-only head reads the pixel maps alone
+    alone = IIDSU(dataclasses.replace(cfg, lamp_channels=0))
+    assert alone.camera_traffic.fc.in_features == 2 * 4 and alone.lamp is None
+    saved = {key: v for key, v in dataclasses.asdict(TINY).items() if key != "pixel_lamp_channels"}
+    assert ModelConfig.from_dict(saved).pixel_lamp_channels == 0  # runs from before: off
+    with pytest.raises(ValueError, match="pixel_lamp_channels"):
+        dataclasses.replace(TINY, pixel_lamp_channels=-1)
 
 
 def test_planner_reads_the_speed_and_old_checkpoints_load_without_it():

@@ -88,6 +88,7 @@ MODEL_FLAGS = {
     "no_camera_traffic": "camera_traffic",
     "traffic_pool": "traffic_pool",
     "lamp_channels": "lamp_channels",
+    "pixel_lamp_channels": "pixel_lamp_channels",
     "no_traffic_residual": "traffic_residual",
     "traffic_residual_dropout": "traffic_residual_dropout",
 }
@@ -177,6 +178,14 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         metavar="N",
         help="signal-lamp maps from the camera's first stage (stride 4) into F_DSU and the "
         "camera-only traffic head (8; 0: off; ours, a lamp is 1.5-3 px)",
+    )
+    p.add_argument(
+        "--pixel-lamp-channels",
+        type=_checked(int, lambda v: v >= 0, "0 or more"),
+        metavar="N",
+        help="signal-lamp maps from per-pixel colour detectors on the camera image (stride 1) "
+        "beside them "
+        "(0: off, the default; ours)",
     )
     p.add_argument(
         "--no-traffic-residual",

@@ -76,6 +76,12 @@ class ModelConfig:
     # arterial F1 0.21 reading the stride-32 map, 0.32 at stride 8 and 0.63-0.80 with 8 such
     # stride-4 maps (1,000 steps each; 3 seeds: 0.80, 0.68, 0.63). 0 = off (earlier runs).
     lamp_channels: int = 8
+    # Ours: pixel lamp channels. Per-pixel colour detectors on the normalised camera image (a
+    # 1x1 conv 3 -> this many, then GELU) give maps max-pooled to F_DSU's grid beside the lamp
+    # maps above, so that a lamp's colour is judged per pixel before any stride mixes it with
+    # its surround (one threshold on the raw image's third-largest redness scores held-out
+    # arterial F1 0.81). 0 = off (runs from before the option).
+    pixel_lamp_channels: int = 8
     # Ours: F_DSU's traffic-rule head predicts a correction to the camera-only head's logits
     # (IIDSU.forward: traffic = head(ECA(F_DSU)) + camera_traffic), so that the lamp evidence
     # the camera head finds is the fused head's starting point, not one input among 2C + k that
@@ -97,6 +103,8 @@ class ModelConfig:
             raise ValueError("depths and dims need four stages each")
         if self.lamp_channels < 0:
             raise ValueError(f"lamp_channels must be >= 0, got {self.lamp_channels}")
+        if self.pixel_lamp_channels < 0:
+            raise ValueError(f"pixel_lamp_channels must be >= 0, got {self.pixel_lamp_channels}")
         if not 0.0 <= self.traffic_residual_dropout < 1.0:
             raise ValueError(
                 f"traffic_residual_dropout must be in [0, 1), got {self.traffic_residual_dropout}"
@@ -153,6 +161,7 @@ class ModelConfig:
             "camera_traffic": False,
             "traffic_pool": "avg",
             "lamp_channels": 0,
+            "pixel_lamp_channels": 0,
             "traffic_residual": False,
             "traffic_residual_dropout": 0.0,
             **d,

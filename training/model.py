@@ -159,9 +159,13 @@ class IIDSU(nn.Module):
             TransFuserLayer(d, cfg.fusion_tokens, cfg.fusion_blocks, cfg.fusion_heads)
             for d in cfg.dims
         )
-        # Ours (ModelConfig.lamp_channels): signal-lamp maps from the camera's first stage.
-        k = cfg.lamp_channels
-        self.lamp = nn.Conv2d(cfg.dims[0], k, kernel_size=1) if k else None
+        # Ours (ModelConfig.lamp_channels, pixel_lamp_channels): signal-lamp maps from the
+        # camera's first stage and from per-pixel colour detectors on the image.
+        k = cfg.lamp_channels + cfg.pixel_lamp_channels
+        self.lamp = nn.Conv2d(cfg.dims[0], cfg.lamp_channels, 1) if cfg.lamp_channels else None
+        self.pixel_lamp = None
+        if cfg.pixel_lamp_channels:  # per-pixel colour detectors: a 1x1 conv and GELU
+            self.pixel_lamp = nn.Sequential(nn.Conv2d(3, cfg.pixel_lamp_channels, 1), nn.GELU())
         self.to_dsu = nn.Conv2d(2 * cfg.dims[-1] + k, cfg.feature_dim, kernel_size=1)
         self.eca = nn.ModuleDict({name: ECA(cfg.feature_dim) for name in cfg.heads})
         steps = int(math.log2(cfg.output_px // cfg.feature_px))
@@ -201,11 +205,13 @@ class IIDSU(nn.Module):
         self, image: torch.Tensor, lidar: torch.Tensor, speed: torch.Tensor, camera_alone: bool
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """F_DSU and, with `camera_alone`, a map of the camera alone (no fusion has touched
-        it): the lamp maps (B, lamp_channels, H / 32, W / 32) when the model has them, else
-        stages 2-4 run a second time on the first stage's output, (B, dims[-1], H / 32, W / 32).
+        it): the lamp maps (B, lamp_channels + pixel_lamp_channels, H / 32, W / 32) when the
+        model has them, else stages 2-4 run a second time on the first stage's output,
+        (B, dims[-1], H / 32, W / 32).
 
-        The lamp maps: a 1x1 conv on the camera's first stage (stride 4), max-pooled to F_DSU's
-        grid, so that a lamp a few pixels wide reaches F_DSU undiluted."""
+        The lamp maps: a 1x1 conv on the camera's first stage (stride 4) and per-pixel colour
+        detectors on the image (stride 1), each max-pooled to F_DSU's grid, so that a lamp a
+        few pixels wide reaches F_DSU undiluted."""
         x_img = (image.float() / 255.0 - self.mean) / self.std
         if lidar.shape[1] != self.cfg.lidar_in_channels:  # e.g. 4 summed channels, 2 wanted
             raise ValueError(
@@ -214,19 +220,24 @@ class IIDSU(nn.Module):
             )
         lid = lidar.float()
         x_lid = lid.clamp(max=self.cfg.lidar_clip_count) / self.cfg.lidar_clip_count
+        px = self.cfg.feature_px
+        pixel = [] if self.pixel_lamp is None else [self.pixel_lamp(x_img)]
         x_img = self.image_encoder.stem(x_img)
         x_lid = self.lidar_encoder.stem(x_lid)
         camera, lamps = None, []
+        rerun = camera_alone and self.lamp is None and self.pixel_lamp is None
         for k, (img_stage, lid_stage, fuse) in enumerate(
             zip(self.image_encoder.stages, self.lidar_encoder.stages, self.fusion)
         ):
             x_img = img_stage(x_img)
             if k == 0 and self.lamp is not None:
-                lamps = [F.adaptive_max_pool2d(self.lamp(x_img), self.cfg.feature_px)]
-                camera = lamps[0] if camera_alone else None
-            elif camera_alone and self.lamp is None:
+                lamps = [self.lamp(x_img)]
+            elif rerun:
                 camera = x_img if k == 0 else img_stage(camera)
             x_img, x_lid = fuse(x_img, lid_stage(x_lid), speed)
+        lamps = [F.adaptive_max_pool2d(m, px) for m in lamps + pixel]  # (B, k, 8, 8) each
+        if camera_alone and lamps:
+            camera = torch.cat(lamps, dim=1)
         return self.to_dsu(torch.cat([x_img, x_lid, *lamps], dim=1)), camera  # (B, 1024, 8, 8)
 
     def forward(
