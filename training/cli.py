@@ -184,8 +184,7 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         type=_checked(int, lambda v: v >= 0, "0 or more"),
         metavar="N",
         help="signal-lamp maps from per-pixel colour detectors on the camera image (stride 1) "
-        "beside them "
-        "(0: off, the default; ours)",
+        "beside them (8; 0: off; ours, a 1x1 conv and GELU per pixel, max-pooled to 8x8)",
     )
     p.add_argument(
         "--no-traffic-residual",
@@ -239,7 +238,8 @@ are thin) and the red-light / stop-sign positive weights (3, 3: both are the min
 ours too, and so is the camera-only traffic-rule head (weight 0.1; --no-camera-traffic drops
 it), which makes the camera encoder find lamps and signs itself, the traffic-rule heads'
 mean-and-maximum pooling (--traffic-pool avgmax: a lamp fills one of 64 cells) and
-signal-lamp maps from the camera's first stage (--lamp-channels 8), F_DSU's traffic head
+signal-lamp maps from the camera's first stage (--lamp-channels 8) and from per-pixel colour
+detectors on the image (--pixel-lamp-channels 8), F_DSU's traffic head
 predicting a correction to the camera-only head's logits (--no-traffic-residual: on its own,
 as in the paper) with that correction dropped for half the training frames
 (--traffic-residual-dropout 0.5), the camera

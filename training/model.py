@@ -7,7 +7,8 @@ feature F_DSU, one ECA module per head, and five heads.
                                                                       bev (B,3,R,R),
                                                                       traffic (B,2), weather (B,4)
 
-Ours (ModelConfig.lamp_channels): a 1x1 conv on the camera's first stage (stride 4) gives
+Ours (ModelConfig.lamp_channels, pixel_lamp_channels): a 1x1 conv on the camera's first stage
+(stride 4) and per-pixel colour detectors on the image (a 1x1 conv and GELU, stride 1) give
 lamp maps, max-pooled to 8x8 and concatenated before the 1x1 conv, so that a signal lamp a few
 pixels wide reaches F_DSU; the camera-only traffic head (ModelConfig.camera_traffic) reads them,
 and F_DSU's traffic head adds its logits to that head's (ModelConfig.traffic_residual).
