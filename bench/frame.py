@@ -28,8 +28,8 @@ import numpy as np  # noqa: E402
 
 from datagen import episode, labels, lidar, raycast  # noqa: E402
 from datagen.scene import load_static_scene  # noqa: E402
-from datagen.towns import town_net_path  # noqa: E402
 from datagen.world import World, WorldConfig  # noqa: E402
+from datagen.world.towns import town_net_path  # noqa: E402
 from schemas import codecs  # noqa: E402
 
 TARGET_SENSOR_OVER_BARE = 1.3

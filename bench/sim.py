@@ -28,9 +28,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from datagen.behaviour import draw_condition  # noqa: E402
-from datagen.towns import TOWN_NAMES, town_net_path  # noqa: E402
 from datagen.world import World, WorldConfig, record  # noqa: E402
+from datagen.world.behaviour import draw_condition  # noqa: E402
+from datagen.world.towns import TOWN_NAMES, town_net_path  # noqa: E402
 
 
 def run_episode(job: tuple[str, int, float]) -> dict:

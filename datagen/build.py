@@ -85,7 +85,7 @@ def episode_task(
 
         net_path = town.net_path
         if town.builtin and not Path(net_path).exists():  # another machine of a Ray cluster
-            from datagen.towns import town_net_path
+            from datagen.world.towns import town_net_path
 
             net_path = str(town_net_path(town.name))
         spec = episode_module.EpisodeSpec(
@@ -495,7 +495,7 @@ def _replace_path(obj, path: list[str], value: str, item: str):
 
 
 def resolve_towns(args) -> tuple[Town, ...]:
-    from datagen import towns as towns_module
+    from datagen.world import towns as towns_module
 
     if args.towns is not None and (args.town or args.net):
         raise UserError("--towns N cannot be combined with --town or --net")

@@ -16,7 +16,7 @@ from datagen.errors import UserError
 
 # subcommand -> module exposing HELP, add_arguments(parser) and run(args) -> exit status.
 COMMANDS = {
-    "towns": "datagen.towns",
+    "towns": "datagen.world.towns",
     "build": "datagen.build",
     "validate": "datagen.validate",
     "inspect": "datagen.inspect",

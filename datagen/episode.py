@@ -47,7 +47,7 @@ state at any distance (was: only the heads showing the ego's governing light wit
 5 the expert yields to people at crossings and keeps junctions clear, and an episode that ends
 in an ego collision loses its last 5 s of frames (datagen/world/world.py `record`); 6 the expert
 yields to people its body would sweep on a turn and waits out a green too short to clear the
-junction (datagen/world/perception.py `swept_contact`, datagen/expert.py `light_rule`); 7 the
+junction (datagen/world/perception.py `swept_contact`, datagen/world/expert.py `light_rule`); 7 the
 target point is the next point of the sparse route plan by default (SensorConfig.target_point);
 the expert yields to a standing person at the kerb only where its body would cover them, and
 after a stop sign waits at the line while a foe is inside the junction or due within 5 s; 8 the
@@ -215,8 +215,8 @@ def run_episode(
     progress: Callable[[int], None] | None = None,
 ) -> EpisodeResult:
     """Drive one episode and return its table (see the module docstring)."""
-    from datagen.towns import network_sha256
     from datagen.world import World, WorldConfig, record
+    from datagen.world.towns import network_sha256
 
     net = Path(spec.net_path)
     static = load_static_scene(net)

@@ -161,7 +161,7 @@ def _episode_of_seed(seed: int, town: str, index: int, weather: str, n: int, rnd
     # same episode in any build with the same seed, whatever the other towns are.
     root = np.random.SeedSequence(seed, spawn_key=(zlib.crc32(town.encode()), index))
     sim_seed, draw_seed = root.spawn(2)
-    from datagen.behaviour import draw_condition
+    from datagen.world.behaviour import draw_condition
 
     w, behaviour = draw_condition(np.random.default_rng(draw_seed), {weather: 1.0})
     assert w == weather, (w, weather)

@@ -774,7 +774,7 @@ LOADED_TOWNS = 8  # static scenes kept per process (LRU; all built-in towns: ~10
 def load_static_scene(net_path: Path | str, cache_dir: Path | None = None) -> StaticScene:
     """The static scene of a network: from this process's memory, else the disk cache, else
     built (and cached atomically, so parallel workers may race to build it)."""
-    from datagen.towns import network_sha256
+    from datagen.world.towns import network_sha256
 
     sha = network_sha256(Path(net_path))
     key = f"{sha}-v{SCENE_VERSION}"

@@ -8,12 +8,12 @@ A route is a sequence of edges a passenger car can drive, chosen as in the paper
 benchmark (Sec. IV-A, after Prakash et al. 2021): short routes of SHORT_M (100-500 m) through
 about 3 junctions, long routes of LONG_M (1-2 km) through about 10. Every route carries its own
 seed (the world's traffic and the sensors' noise), weather and the behaviour profile that
-weather implies, drawn by the data's own rule (datagen.behaviour.draw_condition, Sec. IV-A).
+weather implies, drawn by the data's own rule (datagen.world.behaviour.draw_condition, Sec. IV-A).
 
 Standard benchmarks (BENCHMARKS), generated from `--seed 0` and checked into drive/routes/:
 - `training_towns`: every training town, two short and two long routes, the four weathers once
   each per town (the role of CARLA's 42 Routes: seen towns, every condition);
-- `heldout_short`, `heldout_long`: ten routes each on the held-out town (datagen.towns.
+- `heldout_short`, `heldout_long`: ten routes each on the held-out town (datagen.world.towns.
   HELD_OUT_TOWNS, never in a build), weathers in turn (the role of Town05 Short / Long).
 
 The JSON (ROUTESET_VERSION) names the network of every route by built-in town or file path and
@@ -48,7 +48,7 @@ class Route:
         route_id: unique within its set, e.g. "boulevard-short-03".
         town: built-in town name, or None for a user network (then net_path).
         net_path: the network file of a user network (as given to `drive routes --net`).
-        network_sha256: sha256 of the network's bytes (datagen.towns.network_sha256).
+        network_sha256: sha256 of the network's bytes (datagen.world.towns.network_sha256).
         edges: edge ids, in driving order.
         length_m: centreline length, m.
         junctions: junctions with three or more roads on the way.
@@ -81,7 +81,7 @@ class Route:
 
 def resolve_net(route: Route, net_override: Path | None = None) -> Path:
     """The network file of `route`, checked against its sha256 (UserError if it differs)."""
-    from datagen.towns import check_network, network_sha256, town_net_path
+    from datagen.world.towns import check_network, network_sha256, town_net_path
 
     if net_override is not None:
         path = check_network(net_override)
@@ -164,8 +164,8 @@ def generate(
 ) -> list[Route]:
     """`n_short` short and `n_long` long routes on one network, reproducible from `seed`;
     weathers in turn over the routes, behaviour drawn from each route's seed."""
-    from datagen.behaviour import draw_condition
-    from datagen.towns import network_sha256
+    from datagen.world.behaviour import draw_condition
+    from datagen.world.towns import network_sha256
     from drive.geometry import read_net, route_geometry
 
     net = read_net(str(net_path))
@@ -227,7 +227,7 @@ def generate(
 
 def standard_benchmarks(seed: int = 0) -> dict[str, list[Route]]:
     """The checked-in benchmarks (module docstring), by file stem."""
-    from datagen.towns import HELD_OUT_TOWNS, TOWN_NAMES, town_net_path
+    from datagen.world.towns import HELD_OUT_TOWNS, TOWN_NAMES, town_net_path
 
     training: list[Route] = []
     for t, town in enumerate(TOWN_NAMES):
@@ -263,7 +263,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from datagen.towns import check_network, town_net_path
+    from datagen.world.towns import check_network, town_net_path
 
     if args.short < 0 or args.long < 0 or args.short + args.long == 0:
         raise UserError("--short and --long must be >= 0 and not both 0")

@@ -184,7 +184,7 @@ def run(args) -> int:
     import cv2
 
     from datagen.episode import SensorConfig
-    from datagen.towns import town_net_path
+    from datagen.world.towns import town_net_path
     from drive.policy import ModelPolicy, parse_policy
 
     spec = parse_policy(args.policy, args.device)

@@ -5,7 +5,7 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from datagen.behaviour import PROFILES, draw_condition, vtype_attributes
+from datagen.world.behaviour import PROFILES, draw_condition, vtype_attributes
 from schemas import BEHAVIOURS, WEATHERS
 
 

@@ -6,7 +6,7 @@ from dataclasses import replace
 
 import pytest
 
-from datagen.towns import build_plain_network, town_net_path
+from datagen.world.towns import build_plain_network, town_net_path
 from drive import cli
 from drive.evaluate import Task, drive_route, summary_doc
 from drive.policy import PolicySpec
@@ -165,7 +165,7 @@ def test_drive_routes_writes_reproducible_route_sets_on_any_network(tmp_path, ca
 
 
 def test_standard_benchmarks_are_checked_in_and_cover_what_they_promise():
-    from datagen.towns import HELD_OUT_TOWNS, TOWN_NAMES
+    from datagen.world.towns import HELD_OUT_TOWNS, TOWN_NAMES
     from drive.routes import ROUTES_DIR
 
     _, train = load_routes(ROUTES_DIR / "training_towns.json")

@@ -7,7 +7,7 @@ import libsumo as ls
 import numpy as np
 import pytest
 
-from datagen.towns import build_plain_network, network_sha256
+from datagen.world.towns import build_plain_network, network_sha256
 from drive.evaluate import Task, drive_route
 from drive.policy import PolicySpec, constant_waypoints
 from drive.routes import Route

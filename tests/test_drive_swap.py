@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from datagen.state import AgentState, FrameState, Pose
-from datagen.towns import town_net_path
+from datagen.world.towns import town_net_path
 from drive import cli, swap
 
 

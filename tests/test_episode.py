@@ -10,7 +10,7 @@ import pytest
 import schemas
 from datagen import episode
 from datagen.state import Pose
-from datagen.towns import network_sha256
+from datagen.world.towns import network_sha256
 from schemas import codecs
 from tests.test_scene import shared_grid3
 

@@ -5,9 +5,9 @@ import math
 
 import pytest
 
-from datagen import expert
-from datagen.behaviour import PROFILES
-from datagen.expert import Decision, ExpertInput, Obstacle, decide
+from datagen.world import expert
+from datagen.world.behaviour import PROFILES
+from datagen.world.expert import Decision, ExpertInput, Obstacle, decide
 
 P = PROFILES["normal"]
 LIMIT = 13.89

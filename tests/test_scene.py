@@ -89,7 +89,7 @@ def flat_scene(
 def build_test_network(path: Path) -> Path:
     """A 3x3 grid, 100 m blocks: a signal in the middle, all-way and minor-road stops on the
     west and east, two-lane east-west roads through the middle, sidewalks and crossings."""
-    from datagen.towns import build_plain_network
+    from datagen.world.towns import build_plain_network
 
     types = {(1, 1): "traffic_light", (0, 1): "allway_stop", (2, 1): "priority_stop"}
     nodes = [

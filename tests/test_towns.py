@@ -8,9 +8,9 @@ from collections import Counter
 
 import pytest
 
-from datagen import towns
 from datagen.errors import UserError
-from datagen.towns import (
+from datagen.world import towns
+from datagen.world.towns import (
     TOWN_NAMES,
     check_network,
     network_sha256,

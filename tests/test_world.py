@@ -9,10 +9,8 @@ import libsumo as ls
 import numpy as np
 import pytest
 
-from datagen import expert
 from datagen.errors import UserError
 from datagen.state import Pose
-from datagen.towns import TOWN_NAMES, build_plain_network, town_net_path
 from datagen.world import (
     AGENT_RADIUS_M,
     COLLISION_DROP_S,
@@ -21,8 +19,10 @@ from datagen.world import (
     EgoCommand,
     World,
     WorldConfig,
+    expert,
     record,
 )
+from datagen.world.towns import TOWN_NAMES, build_plain_network, town_net_path
 from schemas import BOX_CLASSES, COMMANDS, EXPERT_REASONS, TRAFFIC_LIGHTS
 
 SUMO_GAME = Path(__import__("sumo").SUMO_HOME) / "tools" / "game"

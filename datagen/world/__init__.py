@@ -1,6 +1,9 @@
 """The driving world: SUMO stepped in-process, traffic around an expert-driven ego.
 
 Modules (data flows down):
+    towns.py        the built-in towns (SUMO networks from recipes, cached) and network checks
+    behaviour.py    behaviour profiles (SUMO vType tables) and the weather -> behaviour draw
+    expert.py       the expert ego's target speed from named rules: pure
     fleet.py        road-user types and box sizes
     sumo.py         the only module that calls libsumo; typed snapshots and commands
     route.py        route ahead, command, target point, signals: pure geometry
@@ -15,7 +18,7 @@ Everything other modules import from here is re-exported below, so `from datagen
 World, WorldConfig, record` stays the one entry point.
 """
 
-from datagen.behaviour import EGO_DECEL_SLACK
+from datagen.world.behaviour import EGO_DECEL_SLACK
 from datagen.world.fleet import (
     EGO_DIMS_M,
     EGO_ID,

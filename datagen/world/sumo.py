@@ -23,9 +23,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from datagen.behaviour import EGO_DECEL_SLACK, Profile, vtype_attributes
 from datagen.errors import UserError
 from datagen.state import Pose
+from datagen.world.behaviour import EGO_DECEL_SLACK, Profile, vtype_attributes
 from datagen.world.fleet import (
     EGO_DIMS_M,
     EGO_ID,
@@ -601,7 +601,7 @@ def _types_xml(p: Profile) -> ET.Element:
 
 
 def _command(net_path: Path, add_file: Path, step_s: float, seed: int) -> list[str]:
-    from datagen.towns import sumo_bin
+    from datagen.world.towns import sumo_bin
 
     return [
         sumo_bin("sumo"),

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from datagen.behaviour import Profile
 from datagen.errors import UserError
+from datagen.world.behaviour import Profile
 from datagen.world.fleet import VEHICLE_TYPES
 from datagen.world.sumo import EGO_TYPE, Roads, Sumo
 

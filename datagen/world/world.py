@@ -74,11 +74,10 @@ from pathlib import Path
 
 import numpy as np
 
-from datagen import expert
-from datagen.behaviour import EGO_DECEL_SLACK, PROFILES, Profile
 from datagen.errors import UserError
 from datagen.state import AgentState, FrameState, Pose
-from datagen.world import perception, route
+from datagen.world import expert, perception, route
+from datagen.world.behaviour import EGO_DECEL_SLACK, PROFILES, Profile
 from datagen.world.fleet import EGO_DIMS_M, EGO_ID, dims
 from datagen.world.route import PATH_LOOKAHEAD_M, SIGNAL_RANGE_M
 from datagen.world.sumo import Collision, Snapshot, StepEvents, Sumo, box_centre
@@ -240,7 +239,7 @@ class World:
                 f"unknown target point form {config.target_point!r}; "
                 f"expected one of {route.TARGET_FORMS}"
             )
-        from datagen.towns import check_network
+        from datagen.world.towns import check_network
 
         check_network(config.net_path)  # a clear UserError before SUMO sees a bad file
         self.config = config

@@ -53,7 +53,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from datagen.behaviour import EGO_DECEL_SLACK, Profile
+from datagen.world.behaviour import EGO_DECEL_SLACK, Profile
 
 STOP_LINE_MARGIN_M = 1.0  # the ego's front stops this far before a red light's stop line
 STOP_SIGN_MARGIN_M = 0.5  # ... and this far before a stop sign's line
