@@ -11,7 +11,7 @@ at most that length, so fewer frames than towns x 4 x 360 would make the "long" 
 this benchmark's defaults until 2026-12 did, 720 frames in 90-frame episodes.)
 
 The limit: bench/frame.py's `measure()` casts one town's frames and replays the very same rays
-as bare Embree queries (datagen/embree.py); `workers * 1000 / bare_ms` frames/s is what the ray caster alone allows,
+as bare Embree queries (datagen/sensors/embree.py); `workers * 1000 / bare_ms` frames/s is what the ray caster alone allows,
 and each build's end-to-end frames/s is reported as a share of it (same run, same load: the
 machine is shared, so compare ratios, not absolute figures). Per build: frames/s end to end
 (town preparation excluded: towns are cached after the first build), the stage breakdown summed

@@ -34,7 +34,7 @@ from drive.routes import ROUTES_DIR, load_routes  # noqa: E402
 def _checkpoint(preset: str, out: Path) -> Path:
     import torch
 
-    from datagen.episode import SensorConfig
+    from datagen.sensors.config import SensorConfig
     from training.config import PRESETS
     from training.model import IIDSU
 

@@ -10,7 +10,7 @@ boxes + Embree commit; the town's static scene is committed once per process), l
 PNGs). Prints the median ms per stage (wall and CPU time: the machine is shared, CPU time is the
 steadier figure), the rays per second achieved by the two sensor stages, and the limit: the very
 same rays (LiDAR, camera, shadow rays; logged per frame) cast again by bare Embree queries
-(datagen/embree.py) on the same committed scene, and the ratio of the two in the same run
+(datagen/sensors/embree.py) on the same committed scene, and the ratio of the two in the same run
 (issue 12: sensors within 1.3x of bare Embree). `measure()` is also what bench/build.py calls for its limit.
 """
 
@@ -26,8 +26,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from datagen import episode, labels, lidar, raycast  # noqa: E402
-from datagen.scene import load_static_scene  # noqa: E402
+from datagen import episode, labels  # noqa: E402
+from datagen.sensors import config, lidar, raycast  # noqa: E402
+from datagen.sensors.scene import load_static_scene  # noqa: E402
 from datagen.world import World, WorldConfig  # noqa: E402
 from datagen.world.towns import town_net_path  # noqa: E402
 from schemas import codecs  # noqa: E402
@@ -50,7 +51,7 @@ def measure(
     t0 = time.perf_counter()
     static = load_static_scene(net)
     t_static = time.perf_counter() - t0
-    cfg = episode.SensorConfig()
+    cfg = config.SensorConfig()
     sense = episode.Sensors(static, cfg, weather, episode.episode_rng(seed))
     wcfg = WorldConfig(net_path=net, seed=seed, weather=weather, behaviour=behaviour)
     stages = {k: [] for k in (*episode.STAGES, "total")}
@@ -77,7 +78,7 @@ def measure(
             scene.ray_log = []
             c2, t2 = time.process_time(), time.perf_counter()
             sweep = sense.sweep(scene, frame)
-            sweeps = [sweep, *sweeps][: episode.HISTORY + 1]
+            sweeps = [sweep, *sweeps][: config.HISTORY + 1]
             counts = sense.lidar_counts(sweeps)
             bev, ground_t = lidar.lidar_bev_channels(counts), lidar.ground_channel(counts)
             c3, t3 = time.process_time(), time.perf_counter()
@@ -102,7 +103,7 @@ def measure(
                 cpu[name].append(c)
             stages["total"].append(sim + t6 - t1)
             cpu["total"].append(sim_cpu + c6 - c1)
-            # The same rays, bare: one Embree query per logged cast (datagen/embree.py).
+            # The same rays, bare: one Embree query per logged cast (datagen/sensors/embree.py).
             tb, cb = time.perf_counter(), time.process_time()
             for query, emb, o, d, tfar in scene.ray_log:
                 raycast.QUERIES[query](emb, o, d, tfar)

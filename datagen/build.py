@@ -82,6 +82,7 @@ def episode_task(
     spec = episode
     if runner is None:
         from datagen import episode as episode_module
+        from datagen.sensors.config import SensorConfig
 
         net_path = town.net_path
         if town.builtin and not Path(net_path).exists():  # another machine of a Ray cluster
@@ -97,7 +98,7 @@ def episode_task(
             behaviour=episode.behaviour,
             n_frames=episode.n_frames,
         )
-        sensors = sensors if sensors is not None else episode_module.SensorConfig()
+        sensors = sensors if sensors is not None else SensorConfig()
         runner = episode_module.run_episode
     t0, cpu0 = time.perf_counter(), time.process_time()
     result = runner(spec, sensors, progress)
@@ -459,7 +460,7 @@ def parse_weather_mix(text: str | None) -> tuple[tuple[str, float], ...] | None:
 
 def parse_sensors(overrides: list[str]):
     """SensorConfig with `FIELD=VALUE` overrides (dotted FIELD for nested configs)."""
-    from datagen.episode import SensorConfig
+    from datagen.sensors.config import SensorConfig
 
     sensors = SensorConfig()
     for item in overrides:

@@ -1,7 +1,7 @@
 """The labels of one recorded frame (paper Sec. III-A), from the simulator's ground truth.
 
 Pure functions of `FrameState`s (the frame at t and its recorded future at 2 Hz) and the town's
-label map (datagen/labelmap.py); every position is in the ego frame at t (x forward, y left, m; yaw counter-clockwise).
+label map (datagen/sensors/labelmap.py); every position is in the ego frame at t (x forward, y left, m; yaw counter-clockwise).
 
 - `bev_semantic`: the network's drivable area, cut by sidewalks, with lane markings on top,
   rasterised on the BEV grid with OpenCV `fillPoly` (1/8-pixel vertex precision). Polygons are
@@ -21,7 +21,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from datagen.labelmap import LabelMap
+from datagen.sensors.labelmap import LabelMap
 from datagen.state import FrameState, Pose
 from schemas import (
     BEV_AHEAD_M,

@@ -56,7 +56,7 @@ class BuildConfig:
         seed: the one seed every episode seed derives from.
         episode_seconds: driving time per planned episode (frames = seconds x 2 Hz).
         weather_mix: ((weather, weight), ...) normalised to sum 1; None = uniform.
-        sensors: a datagen.episode.SensorConfig, or None for its defaults.
+        sensors: a datagen.sensors.config.SensorConfig, or None for its defaults.
     """
 
     towns: tuple[Town, ...]
@@ -78,7 +78,7 @@ class BuildConfig:
     def sensors_dict(self) -> dict:
         sensors = self.sensors
         if sensors is None:
-            from datagen.episode import SensorConfig
+            from datagen.sensors.config import SensorConfig
 
             sensors = SensorConfig()
         return jsonable(sensors.to_dict() if hasattr(sensors, "to_dict") else sensors)

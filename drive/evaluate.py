@@ -90,8 +90,9 @@ def drive_route(
     `task.max_sim_s` stops the route after that much simulated time (bench/drive.py, smoke
     runs); it is scored as far as it got and ends "max_sim_s".
     """
-    from datagen.episode import SensorConfig, Sensors, episode_rng
-    from datagen.scene import load_static_scene
+    from datagen.episode import Sensors, episode_rng
+    from datagen.sensors.config import SensorConfig
+    from datagen.sensors.scene import load_static_scene
     from drive.geometry import route_geometry
     from drive.infractions import InfractionTracker
     from drive.layout import Layout
@@ -350,7 +351,7 @@ def run(args) -> int:
     for r in {(r.town, r.net_path, r.network_sha256): r for r in routes}.values():
         resolve_net(r, args.net)  # a route file for another network fails before any driving
     if spec.kind == "ckpt":  # a sensor mismatch fails before any driving, too
-        from datagen.episode import SensorConfig
+        from datagen.sensors.config import SensorConfig
         from drive.policy import check_sensor_config
         from training.checkpoint import load_checkpoint
 

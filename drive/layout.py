@@ -1,6 +1,6 @@
 """The scene layout the infractions are judged against, from the sensors' own static scene.
 
-Built from `datagen.scene.StaticScene` (the mesh the LiDAR and camera see and its `label_map`,
+Built from `datagen.sensors.scene.StaticScene` (the mesh the LiDAR and camera see and its `label_map`,
 the BEV polygons the labels paint), world frame, metres:
 
 - road: the drivable polygons (BEV class 1: car lanes, junctions) minus the cut-outs painted
@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from datagen.mesh import Material
-from datagen.scene import TRUNK_RGB, StaticScene
+from datagen.sensors.mesh import Material
+from datagen.sensors.scene import TRUNK_RGB, StaticScene
 
 
 def box_corners(x_m: float, y_m: float, yaw_rad: float, length_m: float, width_m: float):

@@ -85,12 +85,12 @@ class SensorStream:
     for missing ones until it is full), so a model sees what it was trained on."""
 
     def __init__(self, sensors, jpeg_quality: int):
-        from datagen.episode import HISTORY
+        from datagen.sensors.config import HISTORY
 
         self.sensors = sensors
         self.jpeg_quality = jpeg_quality
         self._sweeps: deque = deque(maxlen=HISTORY + 1)
-        self.last_sweep = None  # datagen.lidar.Sweep of the last instant encoded or swept
+        self.last_sweep = None  # datagen.sensors.lidar.Sweep of the last instant encoded or swept
 
     def sweep(self, frame: FrameState):
         """Only the LiDAR sweep of `frame` (no camera, no encoding; for the creep's safety box
@@ -101,7 +101,7 @@ class SensorStream:
     def encode(self, frame: FrameState) -> tuple[bytes, bytes, bytes]:
         """(camera JPEG, LiDAR BEV PNG, current ground-hits PNG) of `frame`; call once per
         instant, in order."""
-        from datagen import lidar
+        from datagen.sensors import lidar
         from schemas import codecs
 
         sense = self.sensors

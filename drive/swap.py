@@ -86,8 +86,9 @@ def weather_swap(
 
     Returns (document, figure inputs): the document holds per-frame speeds and gaps per weather
     and the summary; the figure inputs the median frame, its two JPEGs and two plans."""
-    from datagen.episode import SensorConfig, Sensors, episode_rng
-    from datagen.scene import load_static_scene
+    from datagen.episode import Sensors, episode_rng
+    from datagen.sensors.config import SensorConfig
+    from datagen.sensors.scene import load_static_scene
     from datagen.world import World, WorldConfig, record
     from drive.sim import SensorStream
 
@@ -183,7 +184,7 @@ def figure(frame: FrameState, shots: dict) -> np.ndarray:
 def run(args) -> int:
     import cv2
 
-    from datagen.episode import SensorConfig
+    from datagen.sensors.config import SensorConfig
     from datagen.world.towns import town_net_path
     from drive.policy import ModelPolicy, parse_policy
 

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from datagen import camera
-from datagen.raycast import SceneBuilder
+from datagen.sensors import camera
+from datagen.sensors.raycast import SceneBuilder
 from datagen.state import Pose
 from tests.test_scene import EGO_POSE, agent_at, flat_scene, frame_at, shared_grid3
 

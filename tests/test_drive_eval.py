@@ -100,7 +100,7 @@ def test_bad_policies_are_one_line_errors(route_file, tmp_path, capsys):
 
 def test_a_checkpoint_of_other_sensors_is_refused(route_file, tmp_path, capsys):
     torch = pytest.importorskip("torch")
-    from datagen.episode import SensorConfig
+    from datagen.sensors.config import SensorConfig
     from training.config import PRESETS
     from training.model import IIDSU
 

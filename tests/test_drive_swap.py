@@ -72,7 +72,7 @@ def test_the_same_traffic_is_sensed_in_both_weathers_and_plans_compared():
 
 def test_cli_writes_the_report_and_rejects_bad_input(tmp_path, capsys):
     torch = pytest.importorskip("torch")
-    from datagen.episode import SensorConfig
+    from datagen.sensors.config import SensorConfig
     from training.config import PRESETS
     from training.model import IIDSU
 

@@ -1,4 +1,4 @@
-"""datagen/embree.py against embreex, the binding it replaced: same scene, same rays, same
+"""datagen/sensors/embree.py against embreex, the binding it replaced: same scene, same rays, same
 answers bit for bit (primitive ids, hit distances, occlusion)."""
 
 import numpy as np
@@ -6,8 +6,8 @@ import pytest
 from embreex import rtcore, rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
-from datagen import embree
-from datagen.raycast import repeat_rows
+from datagen.sensors import embree
+from datagen.sensors.raycast import repeat_rows
 
 
 def _town_like(rng: np.random.Generator) -> np.ndarray:

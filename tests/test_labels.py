@@ -9,7 +9,7 @@ import pyarrow as pa
 
 import schemas
 from datagen import labels
-from datagen.scene import MeshBuilder, assemble_static_scene
+from datagen.sensors.scene import MeshBuilder, assemble_static_scene
 from datagen.state import Pose
 from schemas import bev_pixel_centres, codecs
 from tests.test_scene import (
@@ -145,7 +145,7 @@ def test_labels_do_not_import_the_render_scene():
 
     code = (
         "import sys, datagen.labels; "
-        "bad = [m for m in ('datagen.scene', 'datagen.raycast', 'datagen.actors') "
+        "bad = [m for m in ('datagen.sensors.scene', 'datagen.sensors.raycast', 'datagen.sensors.actors') "
         "if m in sys.modules]; assert not bad, bad"
     )
     subprocess.run([sys.executable, "-c", code], check=True)

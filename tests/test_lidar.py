@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from datagen import lidar
-from datagen.raycast import SceneBuilder
+from datagen.sensors import lidar
+from datagen.sensors.raycast import SceneBuilder
 from datagen.state import Pose
 from schemas import bev_pixel_centres, ego_to_bev_px
 from tests.test_scene import EGO_POSE, agent_at, flat_scene, frame_at

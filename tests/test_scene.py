@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from datagen import actors, raycast, scene
-from datagen.mesh import Material, boxes_triangles
-from datagen.raycast import SceneBuilder
-from datagen.scene import MeshBuilder
+from datagen.sensors import actors, raycast, scene
+from datagen.sensors.mesh import Material, boxes_triangles
+from datagen.sensors.raycast import SceneBuilder
+from datagen.sensors.scene import MeshBuilder
 from datagen.state import AgentState, FrameState, Pose
 
 # ---------------------------------------------------------------------------- shared fixtures

@@ -20,8 +20,8 @@ Static mesh (built once per network from sumolib, cached on disk under
   right corner of every signalised entry, a stop-sign post at every stop-controlled entry.
 
 Triangles are sorted into square tiles (TILE_M) by centroid; each tile knows how far its
-triangles reach from its centre (what datagen/raycast.py culls by). The BEV polygons the
-labels are painted from are kept beside the mesh as a `LabelMap` (datagen/labelmap.py).
+triangles reach from its centre (what datagen/sensors/raycast.py culls by). The BEV polygons the
+labels are painted from are kept beside the mesh as a `LabelMap` (datagen/sensors/labelmap.py).
 """
 
 from __future__ import annotations
@@ -37,8 +37,8 @@ from pathlib import Path
 import mapbox_earcut
 import numpy as np
 
-from datagen.labelmap import LabelMap
-from datagen.mesh import Material, boxes_triangles, triangle_normals
+from datagen.sensors.labelmap import LabelMap
+from datagen.sensors.mesh import Material, boxes_triangles, triangle_normals
 
 SCENE_VERSION = 2  # bump to invalidate every cached static scene after a change here
 # 2: each signal head knows its traffic light and the links it shows (head_tls, head_link_*)

@@ -17,7 +17,7 @@ sensors' primary rays here (0.92-0.99x: a robust scene and a CPU whose single-ra
 already 8 or 16 wide), and packet hits may pick another of two triangles at the same distance,
 so those stay single rays.
 
-Units: metres; every array is float32 world coordinates (datagen/raycast.py).
+Units: metres; every array is float32 world coordinates (datagen/sensors/raycast.py).
 """
 
 from __future__ import annotations
@@ -211,7 +211,7 @@ def _inputs(origins: np.ndarray, directions: np.ndarray, tfar: np.ndarray) -> tu
 
 def _rows(name: str, a: np.ndarray, n: int) -> np.ndarray:
     """`a` as the compiled loops take it: C-contiguous (N, 3), or (1, 3) for one row shared by
-    all rays (also what a zero-stride view of one repeated row becomes; datagen/raycast.py)."""
+    all rays (also what a zero-stride view of one repeated row becomes; datagen/sensors/raycast.py)."""
     if a.dtype != np.float32 or a.ndim != 2 or a.shape[1] != 3 or a.shape[0] not in (1, n):
         raise ValueError(f"{name} must be float32 (N, 3) or (1, 3), got {a.dtype} {a.shape}")
     return a[:1] if a.strides[0] == 0 else np.ascontiguousarray(a)

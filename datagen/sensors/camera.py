@@ -5,7 +5,7 @@ Mounted as TransFuser's CARLA camera: 1.3 m ahead of the ego's box centre, 2.3 m
 ground, looking straight ahead (no pitch). Only the crop is cast (65,536 rays); its horizontal
 and vertical field of view is 2 * atan(128 / f) = 74.6 degrees with f = 200 / tan(50 deg).
 
-Shading (per pixel, in compiled passes: datagen/shading.py): base colour of the triangle hit x
+Shading (per pixel, in compiled passes: datagen/sensors/shading.py): base colour of the triangle hit x
 (ambient + sun * max(0, n.s) * shadow), with shadow rays towards the sun in sunny weather;
 building walls get a procedural window grid; every traffic-light head glows with the real state
 of its own light's links, whether or not that light governs the ego (`lit_slots`); rays that
@@ -27,10 +27,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from datagen import shading
-from datagen.mesh import Material
-from datagen.raycast import FrameScene, SensorRays
-from datagen.scene import StaticScene
+from datagen.sensors import shading
+from datagen.sensors.mesh import Material
+from datagen.sensors.raycast import FrameScene, SensorRays
+from datagen.sensors.scene import StaticScene
 from datagen.state import FrameState, Pose
 from schemas import IMAGE_FOV_DEG, IMAGE_FULL_H_PX, IMAGE_FULL_W_PX, IMAGE_SIZE_PX
 
@@ -274,7 +274,7 @@ class Camera:
         am = scene.actors
         sun = np.asarray(sun_dir, np.float32)
         # Surface: normal towards the camera, albedo with procedural windows on building
-        # walls, and the sun's lambert term (datagen/shading.py).
+        # walls, and the sun's lambert term (datagen/sensors/shading.py).
         n, albedo, mat, tags, facing, pts, lambert = shading.surface(
             hi, prim, dist, dirs, origins[0], scene.n_static, scene.static_normals,
             scene.static_colour_rgb, scene.static_material, scene.static_tag, am.normals,

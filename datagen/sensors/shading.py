@@ -1,4 +1,4 @@
-"""The camera's per-pixel shading passes, compiled with numba (datagen/camera.py `render` calls
+"""The camera's per-pixel shading passes, compiled with numba (datagen/sensors/camera.py `render` calls
 them; read that docstring for what the shading is).
 
 Why compiled: in numpy the shading was a chain of ~30 whole-array passes with a gather and a
@@ -19,7 +19,7 @@ import math
 import numba
 import numpy as np
 
-from datagen.mesh import Material
+from datagen.sensors.mesh import Material
 
 F32 = np.float32
 _BUILDING = int(Material.BUILDING)

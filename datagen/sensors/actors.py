@@ -13,7 +13,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from datagen.mesh import BOX_FACE_TOP, Material, _stable_index, boxes_triangles, triangle_normals
+from datagen.sensors.mesh import (
+    BOX_FACE_TOP,
+    Material,
+    _stable_index,
+    boxes_triangles,
+    triangle_normals,
+)
 from datagen.state import AgentState
 
 CAR_PAINTS = np.array(

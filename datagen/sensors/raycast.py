@@ -1,7 +1,7 @@
 """Ray casting with Embree: one frame's scene (a culled static part kept across frames, and
 this frame's actors) and the world-frame rays of a sensor.
 
-Culling. datagen/scene.py sorts the static triangles into square tiles (TILE_M) by centroid;
+Culling. datagen/sensors/scene.py sorts the static triangles into square tiles (TILE_M) by centroid;
 each tile knows how far its triangles reach from its centre. The town is cut into CELL_M cells;
 a cell's static Embree scene holds the tiles within the sensors' reach (the camera's 150 m plus
 its mount) of any point of the cell, so the cost per frame does not grow with the town, and it
@@ -11,7 +11,7 @@ triangles) and 27% slower on random_city (221k) than a culled one, for the same 
 
 Two Embree scenes per frame, not one. Committing the 13-22k static triangles within reach costs
 2-3 ms (15-20 ms through embreex, which copied vertices one Python-level index at a time;
-datagen/embree.py fills the buffers with one copy), too much to pay every frame. So the static
+datagen/sensors/embree.py fills the buffers with one copy), too much to pay every frame. So the static
 scene is committed once per cell (60 m; ~0.2 ms per frame at 10 m/s while the process cache is
 cold), and the agents get their own small scene each frame (~1k triangles, ~0.1 ms). Every
 sensor ray is cast into the static scene; only the rays that can hit an agent (LiDAR: its box's
@@ -31,9 +31,9 @@ from functools import cached_property
 import numba
 import numpy as np
 
-from datagen import embree
-from datagen.actors import ActorMesh, actor_mesh
-from datagen.scene import StaticScene
+from datagen.sensors import embree
+from datagen.sensors.actors import ActorMesh, actor_mesh
+from datagen.sensors.scene import StaticScene
 from datagen.state import AgentState, FrameState, Pose
 
 QUERIES = {"intersect": embree.intersect, "distance": embree.distance, "occluded": embree.occluded}
@@ -96,7 +96,7 @@ class FrameScene:
         return out
 
     def _run(self, query: str, scene, origins, directions, tfar):
-        """One Embree query (datagen/embree.py: intersect, distance or occluded); tfar is
+        """One Embree query (datagen/sensors/embree.py: intersect, distance or occluded); tfar is
         overwritten with hit distances."""
         if self.ray_log is not None:
             self.ray_log.append((query, scene, origins, directions, tfar.copy()))

@@ -2,7 +2,7 @@
 Sec. III-A), kept apart from the render mesh so that `datagen/labels.py` needs no scene.
 
 World frame (SUMO network coordinates, metres, x east, y north). Built with the static scene
-(datagen/scene.py `build_static_scene`), cached with it.
+(datagen/sensors/scene.py `build_static_scene`), cached with it.
 """
 
 from __future__ import annotations

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from datagen.raycast import FrameScene, SensorRays
+from datagen.sensors.raycast import FrameScene, SensorRays
 from datagen.state import Pose
 from schemas import (
     BEV_AHEAD_M,

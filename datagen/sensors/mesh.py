@@ -1,5 +1,5 @@
 """Triangles and what they are made of: the vocabulary shared by the static scene
-(datagen/scene.py), the actors (datagen/actors.py) and the sensors.
+(datagen/sensors/scene.py), the actors (datagen/sensors/actors.py) and the sensors.
 
 World frame throughout (SUMO network coordinates, metres, x east, y north, z up).
 """

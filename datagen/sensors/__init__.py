@@ -1,0 +1,14 @@
+"""The sensors: everything that turns a world state into camera and LiDAR data.
+
+Modules (data flows down):
+    mesh.py         triangle meshes and their materials
+    labelmap.py     the BEV label polygons kept beside the static mesh
+    scene.py        the static scene of a town (mesh, label map), built once and cached
+    actors.py       the road users' boxes as triangles
+    embree.py       Embree 4 called from numba (the ray queries)
+    raycast.py      the culled per-frame scene and ray batches on it
+    lidar.py        the LiDAR sweep and its BEV counts
+    shading.py      the camera's compiled per-pixel passes
+    camera.py       the camera image
+    config.py       SensorConfig: both sensors and the encoding
+"""

@@ -1,0 +1,57 @@
+"""The sensors' configuration: what the LiDAR and camera are and how their data are encoded."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import schemas
+from datagen.sensors import camera, lidar
+from schemas import codecs
+
+HISTORY = 2  # past sweeps in the LiDAR BEV (t-1, t-2)
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """Sensors and encoding (defaults: the paper's setup, Sec. III-A; see lidar.py, camera.py).
+
+    Attributes:
+        lidar, camera: the two sensors.
+        jpeg_quality: of the stored camera crop.
+        pose_noise_m, pose_noise_rad: GPS/IMU noise (standard deviation) on the poses that align
+            the t-1 and t-2 sweeps; 0 = exact recorded poses.
+        target_point: the `target_point` column's form, "sparse" (the next point of the sparse
+            route plan, the paper's route goal) or "dense" (30 m along the lane path); see
+            datagen/world/world.py WorldConfig. Not a sensor, but it shapes the data, so it is
+            recorded here (iidsu.config_json) and set with `--sensor target_point=dense`.
+    """
+
+    lidar: lidar.LidarConfig = field(default_factory=lidar.LidarConfig)
+    camera: camera.CameraConfig = field(default_factory=camera.CameraConfig)
+    jpeg_quality: int = codecs.DEFAULT_JPEG_QUALITY
+    pose_noise_m: float = 0.0
+    pose_noise_rad: float = 0.0
+    target_point: str = "sparse"
+
+    def __post_init__(self):
+        from datagen.world.route import TARGET_FORMS
+
+        if self.target_point not in TARGET_FORMS:
+            raise ValueError(f"target_point must be one of {TARGET_FORMS}")
+
+    def to_dict(self) -> dict:
+        """Everything that shapes the data, for the shard metadata (iidsu.config_json): this
+        config, the weather tables, the BEV grid and the recording rates."""
+        return {
+            **asdict(self),
+            "lidar_weather": {k: asdict(v) for k, v in lidar.LIDAR_WEATHER.items()},
+            "camera_weather": {k: asdict(v) for k, v in camera.CAMERA_WEATHER.items()},
+            "bev_grid": {
+                "size_px": schemas.BEV_SIZE_PX,
+                "px_per_m": schemas.BEV_PX_PER_M,
+                "ahead_m": schemas.BEV_AHEAD_M,
+                "side_m": schemas.BEV_SIDE_M,
+            },
+            "frame_rate_hz": schemas.FRAME_RATE_HZ,
+            "lidar_history_frames": HISTORY,
+        }
