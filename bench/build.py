@@ -34,7 +34,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import schemas  # noqa: E402
-from datagen import build  # noqa: E402
+from datagen.dataset import build  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from frame import measure  # noqa: E402

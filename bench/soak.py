@@ -24,7 +24,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from datagen import build, executors  # noqa: E402
+from datagen.dataset import build, executors  # noqa: E402
 
 
 def main() -> None:

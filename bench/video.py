@@ -3,7 +3,7 @@
     .venv/bin/python bench/video.py runs/figure/data --episode downtown-5-0000   # after make figure
 
 Times, for one episode of a built dataset: reading its rows, drawing every frame
-(`datagen.inspect.draw`), encoding the drawn frames to H.264 (PyAV, libx264) and to mp4v
+(`datagen.dataset.inspect.draw`), encoding the drawn frames to H.264 (PyAV, libx264) and to mp4v
 (OpenCV, the fallback), and writing the Rerun recording; prints seconds, ms per frame and the
 file sizes. Prints figures, asserts nothing.
 """
@@ -18,7 +18,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from datagen import inspect, recording  # noqa: E402
+from datagen.dataset import inspect, recording  # noqa: E402
 from schemas import dataset  # noqa: E402
 from schemas.video import VideoWriter  # noqa: E402
 

@@ -17,9 +17,9 @@ from datagen.errors import UserError
 # subcommand -> module exposing HELP, add_arguments(parser) and run(args) -> exit status.
 COMMANDS = {
     "towns": "datagen.world.towns",
-    "build": "datagen.build",
-    "validate": "datagen.validate",
-    "inspect": "datagen.inspect",
+    "build": "datagen.dataset.build",
+    "validate": "datagen.dataset.validate",
+    "inspect": "datagen.dataset.inspect",
 }
 
 

@@ -260,13 +260,13 @@ def route_task(task: Task, progress: Callable[[int], None]) -> dict:
 def execute(
     tasks: list[Task], workers: int, executor: str = "process", ray_address: str | None = None
 ) -> Iterable[dict]:
-    """Drive the tasks (datagen.executors: a supervised process pool or Ray, as every parallel
+    """Drive the tasks (datagen.dataset.executors: a supervised process pool or Ray, as every parallel
     command), serially in this process with one process worker; results as routes finish."""
     if workers <= 1 and executor == "process":
         for t in tasks:
             yield drive_route(t)
         return
-    from datagen import executors
+    from datagen.dataset import executors
 
     with (
         executors.stop_on_sigterm(),

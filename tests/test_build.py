@@ -20,9 +20,9 @@ import pyarrow.dataset as ds
 import pytest
 
 import schemas
-from datagen import build, executors, plan, validate
+from datagen.dataset import build, executors, plan, validate
+from datagen.dataset.manifest import LOCK, MANIFEST, BuildLock
 from datagen.errors import UserError
-from datagen.manifest import LOCK, MANIFEST, BuildLock
 from tests.synthetic import synthetic_table
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,4 +1,4 @@
-"""datagen/executors.py: results, retries of dead workers, the watchdog, failures, SIGTERM, on
+"""datagen/dataset/executors.py: results, retries of dead workers, the watchdog, failures, SIGTERM, on
 local processes and on Ray. Task functions live at module level: workers import them by name."""
 
 import os
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from datagen import executors
+from datagen.dataset import executors
 from datagen.errors import UserError
 
 

@@ -19,7 +19,8 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
-from datagen import episode, shards
+from datagen import episode
+from datagen.dataset import shards
 from datagen.world import towns
 from tests.test_scene import build_test_network
 

@@ -9,7 +9,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from datagen import cli, inspect
+from datagen import cli
+from datagen.dataset import inspect
 from schemas import dataset
 from tests.synthetic import synthetic_table
 

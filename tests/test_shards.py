@@ -6,7 +6,7 @@ import pyarrow.parquet as pq
 import pytest
 
 import schemas
-from datagen import shards
+from datagen.dataset import shards
 from datagen.errors import UserError
 from tests.synthetic import synthetic_table
 

@@ -27,7 +27,7 @@ def test_there_are_eight_training_towns_and_one_held_out():
 
 
 def test_a_build_never_draws_the_held_out_town():
-    from datagen.build import resolve_towns
+    from datagen.dataset.build import resolve_towns
 
     for n in range(1, len(TOWN_NAMES) + 1):
         args = argparse.Namespace(towns=n, town=[], net=[])

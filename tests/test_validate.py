@@ -9,8 +9,8 @@ import pyarrow.parquet as pq
 import pytest
 
 import schemas
-from datagen import shards, validate
-from datagen.manifest import MANIFEST
+from datagen.dataset import shards, validate
+from datagen.dataset.manifest import MANIFEST
 from tests.test_build import fake_build
 
 

@@ -19,7 +19,7 @@ A task function takes its payload and a progress callback (`progress(n)`: n unit
 `progress(0)` is a bare heartbeat) and returns a picklable result. It must be importable by name
 (a module-level function, or a functools.partial of one), since workers are fresh interpreters:
 
-    from datagen import executors
+    from datagen.dataset import executors
 
     def score_route(route, progress):          # a module-level function
         ...; progress(1); ...
@@ -30,7 +30,7 @@ A task function takes its payload and a progress callback (`progress(n)`: n unit
             print(done.key, done.result, done.worker, done.peak_rss_mb)
 
 `map` submits everything at once; a caller whose tasks depend on earlier results (the build's
-top-up rounds) uses `submit(key, payload)` and `events(timeout_s)` directly (datagen/build.py).
+top-up rounds) uses `submit(key, payload)` and `events(timeout_s)` directly (datagen/dataset/build.py).
 Which task runs where and when never changes a result, so output that is a function of the
 results alone (the build's shards and manifest) is the same for any executor and worker count.
 """

@@ -1,6 +1,6 @@
 """The build's manifest (`_manifest.json`), its lock, resume and statistics.
 
-A shard is written under a `_` temporary name and renamed when complete (datagen/shards.py), then
+A shard is written under a `_` temporary name and renamed when complete (datagen/dataset/shards.py), then
 recorded in `_manifest.json`, itself rewritten atomically. Running the same command again keeps
 every finished episode (its shard present with the manifest's row count), adopts shards that were
 renamed but not yet recorded, and redoes the rest (`prepare_output`).
@@ -19,9 +19,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 import schemas
-from datagen import shards
+from datagen.dataset import shards
+from datagen.dataset.plan import BuildConfig, TownPlan, is_done
 from datagen.errors import UserError
-from datagen.plan import BuildConfig, TownPlan, is_done
 
 MANIFEST = "_manifest.json"
 LOCK = "_build.lock"

@@ -16,7 +16,7 @@ command, speed and the expert's reason.
 `--episode ID` it is that episode's `frame` number instead. `--video` draws every frame of the
 episode (the first one in read order without `--episode`) into an H.264 `.mp4` (or VP9 `.webm`)
 at the recording rate (2 Hz) times `--speed`; `--rerun` logs it to a Rerun recording
-(datagen/recording.py).
+(datagen/dataset/recording.py).
 """
 
 from __future__ import annotations
@@ -194,7 +194,7 @@ def _run(args: argparse.Namespace) -> int:
         episode = dataset.episode_ids(path)[0]
         print(f"no --episode given: using the first one, {episode}", file=sys.stderr)
     if args.rerun is not None:
-        from datagen import recording
+        from datagen.dataset import recording
 
         recording.check_installed()
     table = dataset.read_episode(path, episode)

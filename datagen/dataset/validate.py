@@ -27,7 +27,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 import schemas
-from datagen import executors
+from datagen.dataset import executors
 from datagen.errors import UserError
 from schemas import codecs
 from schemas.dataset import shard_files
@@ -147,7 +147,7 @@ def _first_line(e: BaseException) -> str:
 
 
 def _check_task(path: Path, progress, root: Path) -> ShardReport:
-    """check_shard as an executor task (datagen/executors.py)."""
+    """check_shard as an executor task (datagen/dataset/executors.py)."""
     return check_shard(path, root)
 
 

@@ -5,8 +5,8 @@
     datagen build --net my_city.net.xml --frames 5000 --weather-mix sunny=3,foggy=1
     datagen build ... --executor ray [--ray-address ray://head:10001]
 
-The plan (which episodes, from the arguments alone) is datagen/plan.py; the executors (local
-processes or Ray) datagen/executors.py; the manifest, lock and resume datagen/manifest.py. This
+The plan (which episodes, from the arguments alone) is datagen/dataset/plan.py; the executors (local
+processes or Ray) datagen/dataset/executors.py; the manifest, lock and resume datagen/dataset/manifest.py. This
 module runs the loop: plan, submit what is not done, record each finished episode, re-plan.
 Because each episode's content is a function of its spec and each top-up round a function of the
 previous rounds' row counts, the dataset is the same however the work was scheduled or
@@ -31,10 +31,15 @@ from pathlib import Path
 import pyarrow as pa
 
 import schemas
-from datagen import executors, shards
-from datagen.errors import UserError
-from datagen.manifest import MANIFEST, META_EPISODE_JSON, BuildLock, make_manifest, prepare_output
-from datagen.plan import (
+from datagen.dataset import executors, shards
+from datagen.dataset.manifest import (
+    MANIFEST,
+    META_EPISODE_JSON,
+    BuildLock,
+    make_manifest,
+    prepare_output,
+)
+from datagen.dataset.plan import (
     EPISODE_SECONDS,
     PAPER_FRAMES,
     BuildConfig,
@@ -44,6 +49,7 @@ from datagen.plan import (
     jsonable,
     plan,
 )
+from datagen.errors import UserError
 
 HELP = "generate the dataset: driving episodes across towns and weathers, as Parquet shards"
 SUMMARY_COUNTS = (
@@ -173,7 +179,7 @@ class RunOptions:
         executor: "process" (local worker processes) or "ray".
         ray_address: an existing Ray cluster; None starts a local instance.
         retries: further attempts of an episode whose worker died.
-        stall_s: watchdog, seconds without progress; None = adaptive (datagen/executors.py).
+        stall_s: watchdog, seconds without progress; None = adaptive (datagen/dataset/executors.py).
         max_episodes_per_worker: episodes before a worker process is replaced; None = never.
     """
 
