@@ -28,7 +28,7 @@ demo: venv
 	$(BIN)/datagen build --towns 2 --frames 200 --workers 2 --force
 	$(BIN)/datagen inspect data --frame 10 --out runs/demo/frame.png
 	$(BIN)/datagen inspect data --video runs/demo/episode.mp4 --speed 4
-	$(BIN)/train fit --shards data --config tiny --epochs 1 --out runs/demo
+	$(BIN)/train fit --shards data --config tiny --epochs 1 --out runs/demo --force
 	$(BIN)/train show --ckpt runs/demo/last.pt --shards data --frame 10 --out runs/demo/show.png
 
 # The README's picture (docs/inspect.png) and the video it links to: one 360-frame episode

@@ -175,6 +175,7 @@ def main() -> None:
             _run([*build, "--out", str(args.data), "--no-progress"])
         fit = ["training.cli", "fit", "--shards", str(args.data), "--config", "tiny"]
         fit += ["--epochs", str(args.epochs), "--val-towns", args.val_town, "--out", str(run)]
+        fit += ["--force"]  # a fresh run, whatever an earlier one left in --out
         fit_s = _run([*fit, "--device", "cpu", *args.fit_arg])
         ev = ["training.cli", "eval", "--ckpt", str(run / "last.pt"), "--shards", str(args.data)]
         _run([*ev, "--split", "val", "--device", "cpu", "--out", str(run / "eval.json")])

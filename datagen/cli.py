@@ -8,11 +8,10 @@ datagen inspect data/ --frame 10 --out f.png   draw one frame (paper Fig. 5)
 
 from __future__ import annotations
 
-import argparse
 import importlib
 import sys
 
-from datagen.errors import UserError
+from schemas import cli
 
 # subcommand -> module exposing HELP, add_arguments(parser) and run(args) -> exit status.
 COMMANDS = {
@@ -21,28 +20,26 @@ COMMANDS = {
     "validate": "datagen.dataset.validate",
     "inspect": "datagen.dataset.inspect",
 }
+RESUMABLE = {"build"}  # a stopped build resumes when the same command runs again
+
+
+def _resume_hint(args) -> str:
+    from datagen.dataset.build import RESUME
+
+    return RESUME
+
+
+def commands() -> list[cli.Command]:
+    result = []
+    for name, module_name in COMMANDS.items():
+        m = importlib.import_module(module_name)
+        resume = _resume_hint if name in RESUMABLE else None
+        result.append(cli.Command(name, m.HELP, m.add_arguments, m.run, resume))
+    return result
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="datagen", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    sub = parser.add_subparsers(dest="command", required=True)
-    modules = {}
-    for name, module_name in COMMANDS.items():
-        module = importlib.import_module(module_name)
-        p = sub.add_parser(name, help=module.HELP, description=module.HELP)
-        module.add_arguments(p)
-        modules[name] = module
-    args = parser.parse_args(argv)
-    try:
-        return int(modules[args.command].run(args) or 0)
-    except UserError as e:
-        print(f"datagen {args.command}: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"datagen {args.command}: interrupted", file=sys.stderr)
-        return 130
+    return cli.main("datagen", __doc__, commands(), argv)
 
 
 if __name__ == "__main__":

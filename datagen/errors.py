@@ -1,5 +1,4 @@
-"""Errors that reach the user as one line and a non-zero exit (never a traceback)."""
+"""The one UserError of the four commands lives in schemas/errors.py (training may import only
+schemas); re-exported here for datagen's modules."""
 
-
-class UserError(Exception):
-    """A mistake in the user's input or environment: `datagen` prints it and exits with 2."""
+from schemas.errors import UserError  # noqa: F401

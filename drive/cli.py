@@ -17,17 +17,10 @@ from pathlib import Path
 # the ray caster and the other route workers need; set before torch is imported.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from datagen.errors import UserError
+from schemas import cli  # noqa: E402
 
 
-def main(argv: list[str] | None = None) -> int:
-    from drive import evaluate, routes, swap
-
-    p = argparse.ArgumentParser(prog="drive", description=__doc__.splitlines()[0])
-    sub = p.add_subparsers(dest="command", required=True)
-    r = sub.add_parser("routes", help="write a deterministic route set (JSON)")
-    routes.add_arguments(r)
-    e = sub.add_parser("eval", help="drive a route set with a policy and score it")
+def _add_eval(e: argparse.ArgumentParser) -> None:
     e.add_argument("--policy", required=True, help="expert | constant | ckpt:PATH")
     e.add_argument("--routes", required=True, type=Path, help="route file (drive routes)")
     e.add_argument("--out", required=True, type=Path, help="results directory")
@@ -35,17 +28,30 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument(
         "--executor", default="process", choices=("process", "ray"), help="where workers run"
     )
-    e.add_argument("--ray-address", default=None, help="an existing Ray cluster")
+    e.add_argument(
+        "--ray-address", default=None, help="an existing Ray cluster (default: a local one)"
+    )
     e.add_argument("--record", type=int, default=0, help="MP4 videos of the first N routes")
-    e.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
-    e.add_argument("--net", type=Path, default=None, help="the network of a --net route file")
-    e.add_argument("--limit", type=int, default=0, help="drive only the first N routes")
+    e.add_argument(
+        "--device",
+        default="auto",
+        choices=("auto", "cpu", "cuda"),
+        help="where a ckpt: policy runs; auto: CUDA if present",
+    )
+    e.add_argument("--net", type=Path, default=None, help="the network file of a --net route file")
+    e.add_argument(
+        "--limit",
+        type=int,
+        default=None,
+        metavar="N",
+        help="drive only the first N routes of the file (N >= 1; default: all)",
+    )
     e.add_argument(
         "--max-sim-s",
         type=float,
         default=None,
         help="stop each route after this many simulated seconds, scored as far as it got "
-        "(smoke runs; ends 'max_sim_s')",
+        "(smoke runs; ends 'max_sim_s'; default: the whole route)",
     )
     e.add_argument(
         "--no-creep",
@@ -55,22 +61,49 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument(
         "--baseline", type=Path, default=None, help="an expert run's --out: traffic delay vs it"
     )
-    w = sub.add_parser("swap", help="one scene in two weathers: what the model plans (Fig. 6)")
-    swap.add_arguments(w)
-    args = p.parse_args(argv)
-    try:
-        from training.errors import UserError as TrainError
-    except ImportError:  # torch not installed: only the checkpoint policy needs it
-        TrainError = UserError
-    try:
-        if args.command == "routes":
-            return routes.run(args)
-        if args.command == "swap":
-            return swap.run(args)
-        return evaluate.run(args)
-    except (UserError, TrainError) as e:
-        print(f"drive: error: {str(e).splitlines()[0] if str(e) else e!r}", file=sys.stderr)
-        return 2
+
+
+def _routes(args) -> int:
+    from drive import routes
+
+    return routes.run(args)
+
+
+def _eval(args) -> int:
+    from drive import evaluate
+
+    return evaluate.run(args)
+
+
+def _swap(args) -> int:
+    from drive import swap
+
+    return swap.run(args)
+
+
+def _add_routes(p: argparse.ArgumentParser) -> None:
+    from drive import routes
+
+    routes.add_arguments(p)
+
+
+def _add_swap(p: argparse.ArgumentParser) -> None:
+    from drive import swap
+
+    swap.add_arguments(p)
+
+
+COMMANDS = (
+    cli.Command("routes", "write a deterministic route set (JSON)", _add_routes, _routes),
+    cli.Command("eval", "drive a route set with a policy and score it", _add_eval, _eval),
+    cli.Command(
+        "swap", "one scene in two weathers: what the model plans (Fig. 6)", _add_swap, _swap
+    ),
+)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return cli.main("drive", __doc__.splitlines()[0], COMMANDS, argv)
 
 
 if __name__ == "__main__":

@@ -44,6 +44,7 @@ from drive.controller import (
 )
 from drive.policy import PolicySpec, constant_waypoints
 from drive.routes import Route, resolve_net
+from schemas import outputs
 
 CREEP_STUCK_S = CreepConfig().stuck_s
 PLAN_PERIOD_S = 0.5  # the policy plans at the data's 2 Hz
@@ -242,6 +243,22 @@ def drive_route(
     return doc
 
 
+def check_routes(routes: list[Route], net_override: Path | None = None) -> None:
+    """UserError, before any driving, for a route whose network is not the one it was made for
+    (sha256) or whose edges are not a drivable path in it."""
+    from drive.geometry import route_geometry
+
+    nets = {}
+    for r in routes:
+        key = (r.town, r.net_path, r.network_sha256)
+        if key not in nets:
+            nets[key] = resolve_net(r, net_override)
+        try:
+            route_geometry(nets[key], r.edges)
+        except ValueError as e:
+            raise UserError(f"route {r.route_id}: {e}") from None
+
+
 def route_score(doc: dict) -> score.RouteScore:
     """The RouteScore of a per-route result document."""
     return score.score_route(
@@ -344,12 +361,16 @@ def run(args) -> int:
     max_sim = args.max_sim_s
     if max_sim is not None and max_sim <= 0:
         raise UserError(f"--max-sim-s must be > 0, got {max_sim}")
+    if args.limit is not None and args.limit < 1:
+        raise UserError(
+            f"--limit must be >= 1 (leave it out to drive every route), got {args.limit}"
+        )
+    out = outputs.check_dir(args.out)  # before any driving
     spec = parse_policy(args.policy, args.device)
     name, routes = load_routes(args.routes)
-    if args.limit:
+    if args.limit is not None:
         routes = routes[: args.limit]
-    for r in {(r.town, r.net_path, r.network_sha256): r for r in routes}.values():
-        resolve_net(r, args.net)  # a route file for another network fails before any driving
+    check_routes(routes, args.net)
     if spec.kind == "ckpt":  # a sensor mismatch fails before any driving, too
         from datagen.sensors.config import SensorConfig
         from drive.policy import check_sensor_config
@@ -364,7 +385,6 @@ def run(args) -> int:
             baseline[d["route"]["route_id"]] = d
         if not baseline:
             raise UserError(f"--baseline {args.baseline}: no routes/*.json results in it")
-    out = Path(args.out)
     tasks = [
         Task(
             r,
@@ -390,6 +410,6 @@ def run(args) -> int:
     summary = summary_doc(name, docs, baseline)
     _write_json(out / "summary.json", summary)
     text = format_summary(summary)
-    (out / "summary.txt").write_text(text + "\n")
+    outputs.write_text(out / "summary.txt", text + "\n")
     print(text)
     return 0

@@ -11,7 +11,6 @@ target point in the ego frame (the model reads no command).
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -64,23 +63,12 @@ def constant_waypoints(speed_mps: float = CONSTANT_SPEED_MPS) -> np.ndarray:
     return np.array([[speed_mps * t, 0.0] for t in WAYPOINT_TIMES_S])
 
 
-def _normalised(config: dict) -> dict:
-    return json.loads(json.dumps(config, sort_keys=True))
-
-
 def check_sensor_config(checkpoint: dict, world_config: dict, where: str) -> None:
     """UserError naming the differing fields if the checkpoint's data was recorded with other
-    sensors than the world's (checkpoints from before sensor_config was stored pass)."""
-    trained = checkpoint.get("sensor_config")
-    if trained is None:
-        return
-    a, b = _normalised(trained), _normalised(world_config)
-    if a != b:
-        keys = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
-        raise UserError(
-            f"{where}: trained on data from other sensors than this world's (differs in "
-            f"{', '.join(keys)}); evaluate with the sensors the data was recorded with"
-        )
+    sensors than the world's (training.checkpoint.check_sensors)."""
+    from training.checkpoint import check_sensors
+
+    check_sensors(checkpoint, world_config, "this world's", where)
 
 
 class ModelPolicy:

@@ -23,14 +23,13 @@ by its sha256, so a route file is never driven on another network.
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from datagen.errors import UserError
-from schemas import WEATHERS
+from schemas import WEATHERS, outputs
 
 ROUTESET_VERSION = 1
 SHORT_M = (100.0, 500.0)
@@ -101,12 +100,8 @@ def resolve_net(route: Route, net_override: Path | None = None) -> Path:
 
 def save_routes(routes: list[Route], path: Path, name: str) -> None:
     """Write a route set as JSON, atomically (a temp name, then a rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     doc = {"version": ROUTESET_VERSION, "name": name, "routes": [r.to_dict() for r in routes]}
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(doc, indent=1) + "\n")
-    os.replace(tmp, path)
+    outputs.write_json(path, doc)
 
 
 def load_routes(path: Path) -> tuple[str, list[Route]]:
@@ -253,7 +248,7 @@ def add_arguments(p) -> None:
     where.add_argument("--net", type=Path, help="any SUMO network (.net.xml)")
     p.add_argument("--short", type=int, default=10, help="short routes (100-500 m)")
     p.add_argument("--long", type=int, default=0, help="long routes (1-2 km)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="draws the routes and their seeds")
     p.add_argument(
         "--out",
         type=Path,
@@ -268,19 +263,19 @@ def run(args) -> int:
     if args.short < 0 or args.long < 0 or args.short + args.long == 0:
         raise UserError("--short and --long must be >= 0 and not both 0")
     if args.standard:
-        out_dir = args.out or ROUTES_DIR
+        out_dir = outputs.check_dir(args.out or ROUTES_DIR)  # before any route is drawn
         for name, routes in standard_benchmarks(args.seed).items():
             save_routes(routes, out_dir / f"{name}.json", name)
             km = sum(r.length_m for r in routes) / 1000.0
             print(f"{out_dir / (name + '.json')}: {len(routes)} routes, {km:.1f} km")
         return 0
+    out = outputs.check_file(args.out or Path("routes.json"), "--out", suffixes=(".json",))
     if args.town:
         net, prefix, town = town_net_path(args.town), args.town, args.town
     else:
         net = check_network(args.net)
         prefix, town = net.name.split(".")[0], None
     routes = generate(net, args.short, args.long, args.seed, prefix, town)
-    out = args.out or Path("routes.json")
     save_routes(routes, out, prefix)
     km = sum(r.length_m for r in routes) / 1000.0
     print(f"{out}: {len(routes)} routes, {km:.1f} km")

@@ -18,7 +18,6 @@ traffic, Sec. IV) means a model that reads the weather should plan slower in rai
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +25,7 @@ import numpy as np
 import schemas
 from datagen.errors import UserError
 from datagen.state import FrameState
+from schemas import outputs
 
 LEAD_HALF_WIDTH_M = 1.8  # a vehicle whose centre is this close to the ego's axis is in its lane
 LEAD_RANGE_M = 30.0
@@ -185,7 +185,7 @@ def run(args) -> int:
     import cv2
 
     from datagen.sensors.config import SensorConfig
-    from datagen.world.towns import town_net_path
+    from datagen.world.towns import check_network, town_net_path
     from drive.policy import ModelPolicy, parse_policy
 
     spec = parse_policy(args.policy, args.device)
@@ -196,13 +196,14 @@ def run(args) -> int:
     weathers = tuple(args.weathers.split(","))
     if len(weathers) != 2 or any(w not in schemas.WEATHERS for w in weathers):
         raise UserError(f"--weathers: two of {schemas.WEATHERS}, e.g. sunny,rainy")
-    net = Path(args.net) if args.net else town_net_path(args.town)
+    out = outputs.check_dir(args.out)  # before any driving
+    net = check_network(args.net) if args.net else town_net_path(args.town)
     policy = ModelPolicy(spec, SensorConfig().to_dict())
     doc, fig = weather_swap(policy.plan, net, args.seed, args.behaviour, args.frames, weathers)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "swap.json").write_text(json.dumps(doc, indent=1))
-    cv2.imwrite(str(out / "swap.png"), figure(fig["frame"], fig["shots"]))
+    outputs.write_json(out / "swap.json", doc)
+    with outputs.atomic(out / "swap.png") as tmp:
+        if not cv2.imwrite(str(tmp), figure(fig["frame"], fig["shots"])):
+            raise UserError(f"{out / 'swap.png'}: cannot write the PNG")
     s = doc["summary"]
     a, b = weathers
     lo, hi = s["speed_ratio_ci95"]
@@ -216,11 +217,18 @@ def run(args) -> int:
 
 def add_arguments(p) -> None:
     p.add_argument("--policy", required=True, help="ckpt:PATH (a trained II-DSU)")
-    p.add_argument("--town", default="downtown", help="a built-in town (downtown)")
+    p.add_argument("--town", default="downtown", help="a built-in town")
     p.add_argument("--net", default=None, help="a SUMO network instead of --town")
-    p.add_argument("--frames", type=int, default=120, help="2 Hz frames (120)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--behaviour", default="normal", help="the traffic's profile (normal)")
+    p.add_argument("--frames", type=int, default=120, help="frames compared, at 2 Hz")
+    p.add_argument("--seed", type=int, default=0, help="the world's and the sensors' seed")
+    p.add_argument(
+        "--behaviour", default="normal", choices=schemas.BEHAVIOURS, help="the traffic's profile"
+    )
     p.add_argument("--weathers", default="sunny,rainy", help="the two sensor weathers")
     p.add_argument("--out", required=True, help="directory for swap.json and swap.png")
-    p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
+    p.add_argument(
+        "--device",
+        default="auto",
+        choices=("auto", "cpu", "cuda"),
+        help="where the model runs; auto: CUDA if present",
+    )

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -32,6 +33,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from datagen.errors import UserError
+from schemas import outputs
+from schemas.cli import sigterm_received
+from schemas.errors import Terminated
 
 ROOT = Path(__file__).resolve().parents[1]
 ROUTES = ROOT / "drive" / "routes"
@@ -106,6 +110,7 @@ class Step:
     output: str  # relative to OUT; the step's result (checked to exist after it ran)
     resume: tuple[str, ...] = ()  # extra argv when an interrupted run is continued
     epochs: int | None = None  # a fit: its output is complete once it holds this many epochs
+    fresh: tuple[str, ...] = ()  # extra argv when it starts anew over what an earlier try left
 
 
 def _fit_epochs(ckpt: Path) -> int:
@@ -136,7 +141,9 @@ def steps(p: Preset, out: Path, device: str, nproc: int) -> list[Step]:
                 fit = ("torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}",
                        "-m", *fit)  # fmt: skip
             ckpt = str(run / "last.pt")
-            fit_step = Step(f"fit-{name}", fit, f"runs/{name}/last.pt", ("--resume",), p.epochs)
+            fit_step = Step(
+                f"fit-{name}", fit, f"runs/{name}/last.pt", ("--resume",), p.epochs, ("--force",)
+            )
             result.append(fit_step)
             ev = ("training.cli", "eval", "--ckpt", ckpt, "--shards", data, "--split", "val")
             ev += ("--device", device, "--out", str(run / "eval.json"))
@@ -169,21 +176,65 @@ def steps(p: Preset, out: Path, device: str, nproc: int) -> list[Step]:
 def _run_step(step: Step, out: Path, resuming: bool) -> float:
     log = out / "logs" / f"{step.name}.log"
     log.parent.mkdir(parents=True, exist_ok=True)
-    argv = [sys.executable, "-m", *step.argv, *(step.resume if resuming else ())]
+    argv = [sys.executable, "-m", *step.argv, *(step.resume if resuming else step.fresh)]
     env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
     t0 = time.perf_counter()
     with log.open("a") as f:
         f.write(f"$ {' '.join(argv)}\n")
         f.flush()
-        code = subprocess.run(
-            argv, stdout=f, stderr=subprocess.STDOUT, env=env, cwd=ROOT
-        ).returncode
+        child = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, env=env, cwd=ROOT)
+        try:
+            code = child.wait()
+        except KeyboardInterrupt as e:  # Ctrl-C (the child has it too) or SIGTERM (this alone)
+            _stop(child, isinstance(e, Terminated) or sigterm_received())
+            raise
     if code != 0:
         tail = log.read_text().strip().splitlines()[-1:] or [""]
         raise UserError(f"step {step.name} failed (exit {code}): {tail[0]} (log: {log})")
     if not (out / step.output).exists():
         raise UserError(f"step {step.name} finished without writing {step.output} (log: {log})")
     return time.perf_counter() - t0
+
+
+def _stop(child: subprocess.Popen, sigterm: bool, wait_s: float = 60.0) -> None:
+    """Let a step stop cleanly (a build records what is done, a fit keeps its last checkpoint):
+    pass SIGTERM on; after a Ctrl-C, which a terminal sends the step too, give it a moment
+    before sending SIGINT (a second one would cut its clean-up short); kill it only if it has
+    not stopped within `wait_s`."""
+    if sigterm:
+        child.send_signal(signal.SIGTERM)
+    else:
+        try:
+            child.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            child.send_signal(signal.SIGINT)
+    try:
+        child.wait(timeout=wait_s)
+    except subprocess.TimeoutExpired:
+        child.kill()
+        child.wait()
+
+
+def check_out(preset_name: str, out: Path) -> Preset:
+    """The preset, checked against `out`, before anything is written there: `out` must be a
+    directory that can be written and hold no experiment of another preset."""
+    if preset_name not in PRESETS:
+        raise UserError(f"unknown preset {preset_name!r}; expected one of {tuple(PRESETS)}")
+    p = PRESETS[preset_name]
+    outputs.check_dir(out)
+    meta_path = out / "experiment.json"
+    if meta_path.exists():
+        config = json.loads(json.dumps(asdict(p)))  # as read back from the file (lists)
+        try:
+            old = json.loads(meta_path.read_text())
+        except (OSError, ValueError):
+            old = {}
+        if old.get("preset") != preset_name or old.get("config") != config:
+            raise UserError(
+                f"{out} holds an experiment of preset {old.get('preset')!r} (its own settings); "
+                "give another --out"
+            )
+    return p
 
 
 def run(
@@ -197,25 +248,14 @@ def run(
     """Run (or resume) the pipeline; the report's path, or None when stopped at `until`."""
     from experiments import report
 
-    if preset_name not in PRESETS:
-        raise UserError(f"unknown preset {preset_name!r}; expected one of {tuple(PRESETS)}")
-    p = PRESETS[preset_name]
-    out.mkdir(parents=True, exist_ok=True)
-    meta_path = out / "experiment.json"
-    config = json.loads(json.dumps(asdict(p)))  # as read back from the file (lists)
-    meta = {"preset": preset_name, "config": config, "device": device, "nproc": nproc}
-    if meta_path.exists():
-        old = json.loads(meta_path.read_text())
-        if old.get("preset") != preset_name or old.get("config") != config:
-            raise UserError(
-                f"{out} holds an experiment of preset {old.get('preset')!r} (its own settings); "
-                "give another --out"
-            )
-    meta_path.write_text(json.dumps(meta, indent=1) + "\n")
+    p = check_out(preset_name, out)
     all_steps = steps(p, out, device, nproc)
     names = [s.name for s in all_steps]
     if until is not None and until not in names:
         raise UserError(f"--until {until!r}: no such step (steps: {', '.join(names)})")
+    config = json.loads(json.dumps(asdict(p)))  # as read back from the file (lists)
+    meta = {"preset": preset_name, "config": config, "device": device, "nproc": nproc}
+    outputs.write_json(out / "experiment.json", meta)
     for step in all_steps:
         done = out / "steps" / f"{step.name}.json"
         if done.exists():
@@ -228,9 +268,8 @@ def run(
             else:
                 echo(f"run  {step.name}" + (" (resuming)" if resuming else ""))
                 wall = _run_step(step, out, resuming)
-            done.parent.mkdir(parents=True, exist_ok=True)
             record = {"argv": list(step.argv), "wall_s": round(wall, 2), "finished": time.time()}
-            done.write_text(json.dumps(record, indent=1) + "\n")
+            outputs.write_json(done, record)
         if step.name == until:
             echo(f"stopped after {until}")
             return None

@@ -26,6 +26,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from schemas.outputs import check_file, partial_path  # noqa: F401  (partial_path: re-exported)
+
 # suffix -> (PyAV codec, OpenCV fallback fourcc, fallback's description)
 CODECS = {
     ".mp4": ("libx264", "mp4v", "MPEG-4 Part 2 (mp4v): plays in VLC/ffplay, not in browsers"),
@@ -40,21 +42,11 @@ class VideoError(ValueError):
     """An output path that cannot take the file (suffix, folder); one-line message."""
 
 
-def partial_path(path: Path) -> Path:
-    """Where a file for `path` is written until complete: hidden `.NAME.partial.EXT` beside it
-    (the suffix kept, so encoders choose their format by it)."""
-    return path.with_name(f".{path.stem}.partial{path.suffix}")
-
-
 def prepare_output(path: Path) -> Path:
-    """Create `path`'s folder if needed and return its `partial_path`; VideoError in one line
-    if the folder cannot be made or written to."""
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        if not os.access(path.parent, os.W_OK):
-            raise PermissionError("permission denied")
-    except OSError as e:
-        raise VideoError(f"{path}: cannot write here ({e.strerror or e})") from None
+    """Check that `path` can be written (schemas.outputs.check_file: UserError in one line if
+    not), create its folder and return its `partial_path`."""
+    path = check_file(path, flag=None)
+    path.parent.mkdir(parents=True, exist_ok=True)
     return partial_path(path)
 
 

@@ -26,15 +26,15 @@ after, i.e. ECA's five kernel weights per head had barely moved from their initi
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+from schemas import outputs
 from training import data
-from training.checkpoint import load_checkpoint, model_from_checkpoint
+from training.checkpoint import check_sensors, load_checkpoint, model_from_checkpoint
 from training.errors import UserError
 from training.fit import autocast, choose_device, to_device
 from training.model import IIDSU
@@ -70,6 +70,8 @@ def eca_similarity(model, loader, device: torch.device) -> dict[str, dict[str, f
 
 
 def run(args) -> int:
+    out = Path(args.out) if args.out else Path(args.ckpt).with_suffix(".analyze.json")
+    outputs.check_file(out, "--out", suffixes=(".json",))  # before the computing
     state = load_checkpoint(args.ckpt)
     shards = args.shards or state.get("train_config", {}).get("shards")
     if not shards:
@@ -79,6 +81,7 @@ def run(args) -> int:
     if len(model.cfg.heads) == 1:
         raise UserError(f"{args.ckpt}: the model has no auxiliary head to compare")
     index = data.scan(shards)
+    check_sensors(state, data.sensor_config(index), shards, args.ckpt)
     picks = np.unique(np.linspace(0, len(index) - 1, min(args.frames, len(index))).astype(int))
 
     def measure(m) -> dict:
@@ -103,10 +106,9 @@ def run(args) -> int:
         print(f"  plan x {LABELS[h]:<10}{row}   |           {ref}")
     print("  raw: cosine of sigmoid weights (unrelated ~0.75); centred: across-channel")
     print("  correlation (unrelated 0); kernel: cosine of the ECA conv kernels")
-    out = Path(args.out) if args.out else Path(args.ckpt).with_suffix(".analyze.json")
     result = {"checkpoint": str(args.ckpt), "shards": str(shards), "frames": len(picks)}
     result["cosine_similarity"] = {h: v["raw"] for h, v in trained.items()}
     result["trained"], result["untrained"] = trained, untrained
-    out.write_text(json.dumps(result, indent=2) + "\n")
+    outputs.write_json(out, result, indent=2)
     print(f"wrote {out}")
     return 0

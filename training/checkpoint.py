@@ -9,7 +9,9 @@ sensor_config (the shards' iidsu.config_json, what closed-loop driving checks it
 
 from __future__ import annotations
 
+import json
 import os
+import warnings
 from pathlib import Path
 
 import torch
@@ -33,12 +35,33 @@ def load_checkpoint(path: str | Path) -> dict:
     if not p.is_file():
         raise UserError(f"{path}: no such checkpoint")
     try:
-        state = torch.load(p, map_location="cpu", weights_only=True)
-    except Exception as e:  # torch raises a variety of types for a foreign or truncated file
-        raise UserError(f"{path}: not a checkpoint written by `train fit` ({e})") from None
+        with warnings.catch_warnings():  # e.g. "Detected pickle protocol 4": a foreign file
+            warnings.simplefilter("ignore")
+            state = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception:  # torch raises a variety of types for a foreign or truncated file
+        # torch's own message (six lines) advises weights_only=False: unsafe on a foreign file
+        # and no help for ours; what the user needs to know is what the file is not
+        state = None
     if not isinstance(state, dict) or not {"model", "model_config"} <= state.keys():
-        raise UserError(f"{path}: not a checkpoint written by `train fit` (keys missing)")
+        raise UserError(f"{path}: not a checkpoint written by `train fit`")
     return state
+
+
+def check_sensors(state: dict, sensors: dict | None, what: str, where: str | Path) -> None:
+    """UserError naming the differing fields if checkpoint `state` was trained on data from
+    other sensors than `sensors` (`what`: whose, e.g. "this world's"; `where`: the checkpoint).
+    Checkpoints from before sensor_config was stored, and data that records none, pass: a
+    model reads images and sweeps of the sizes it was trained on, nothing else."""
+    trained = state.get("sensor_config")
+    if trained is None or sensors is None:
+        return
+    a, b = (json.loads(json.dumps(c, sort_keys=True)) for c in (trained, sensors))
+    if a != b:
+        keys = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+        raise UserError(
+            f"{where}: trained on data from other sensors than {what} (differs in "
+            f"{', '.join(keys)}); evaluate with the sensors the data was recorded with"
+        )
 
 
 def model_from_checkpoint(state: dict, device: torch.device | str = "cpu") -> IIDSU:

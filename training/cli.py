@@ -13,8 +13,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import os
+import shutil
 import sys
+from pathlib import Path
 
 # OpenMP threads that spin while they wait take the cores the DataLoader workers need. Measured
 # on the 2-core CI machine with other jobs running (load average 3-4): `train fit --config tiny
@@ -22,6 +25,7 @@ import sys
 # It must be set before torch is imported (this module imports it lazily); the user's wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+from schemas import cli, outputs
 from training.config import POOLS, PRESETS, ModelConfig, TrainConfig
 from training.errors import UserError
 
@@ -29,13 +33,6 @@ FRAME_ORDER = (
     "frames are numbered as `pd.read_parquet(DIR)` orders them: shard files in sorted path "
     "order, rows in file order"
 )
-
-
-class _Parser(argparse.ArgumentParser):
-    """argparse that reports a usage mistake in one line (and exit status 2)."""
-
-    def error(self, message: str):
-        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
 
 
 def _checked(kind, ok, need: str):
@@ -96,57 +93,53 @@ RESUMABLE = {"shards", "out", "epochs", "workers", "compile"}  # may change on -
 
 
 def _add_fit(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shards", metavar="DIR", help="shard directory or .parquet file (data)")
+    p.add_argument("--shards", metavar="DIR", help="shard directory or .parquet file")
     p.add_argument(
         "--config", choices=sorted(PRESETS), help="preset: paper (default) or tiny (for CPUs)"
     )
-    p.add_argument("--out", metavar="DIR", help="run directory (runs/iidsu)")
+    p.add_argument("--out", metavar="DIR", help="run directory")
     p.add_argument(
         "--epochs",
         type=_positive_int,
         metavar="N",
-        help="epochs in all (30: ours, the paper gives no schedule)",
+        help="epochs in all (ours: the paper gives no schedule)",
     )
     p.add_argument(
         "--batch-size",
         type=_positive_int,
         metavar="N",
-        help="per process (paper preset 32, tiny 8: ours, the paper gives none)",
+        help="frames per optimizer step per process (ours: the paper gives none)",
     )
     p.add_argument(
         "--lr",
         type=_positive_float,
         metavar="F",
-        help="AdamW peak learning rate (paper preset 1e-4, TransFuser's; tiny 1e-3: ours; "
-        "the paper names neither optimizer nor rate)",
+        help="AdamW peak learning rate (the paper preset's is TransFuser's, tiny's ours; the "
+        "paper names neither optimizer nor rate)",
     )
     p.add_argument("--workers", type=_workers, metavar="N", help="DataLoader workers per process")
-    p.add_argument(
-        "--val-fraction", type=_fraction, metavar="F", help="share of episodes held out (0.1)"
-    )
+    p.add_argument("--val-fraction", type=_fraction, metavar="F", help="share of episodes held out")
     p.add_argument(
         "--val-towns",
         type=lambda s: tuple(t for t in s.split(",") if t),
         metavar="A,B",
-        help="hold out these towns' episodes instead (comma-separated)",
+        help="hold out these towns' episodes instead of --val-fraction (comma-separated; "
+        "default: none)",
     )
-    p.add_argument(
-        "--seed", type=int, metavar="N", help="seed of weights, split and data order (0)"
-    )
+    p.add_argument("--seed", type=int, metavar="N", help="seed of weights, split and data order")
     p.add_argument(
         "--zoom-out",
         type=_positive_float,
         metavar="S",
         help="camera zoom-out augmentation: half the training frames shrunk by a factor in "
-        "[S, 1) (0.55; 1: off; ours, the paper names no augmentation)",
+        "[S, 1) (1: off; ours, the paper names no augmentation)",
     )
     p.add_argument(
         "--traffic-context-weight",
         type=_positive_float,
         metavar="W",
         help="weight in L_light and L_sign of the frames where the ego's speed contradicts the "
-        "label (red or stop sign while moving, neither while stopped) (1 = off; 3 measured "
-        "worse on held-out red lights, F1 0.33 vs 0.47; ours)",
+        "label (red or stop sign while moving, neither while stopped) (1: off; ours)",
     )
     p.add_argument(
         "--ema",
@@ -163,7 +156,7 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         action="store_true",
         default=None,
         help="without the camera-only traffic-rule training head (ours, not the paper's; on by "
-        "default: without it the model read red lights from LiDAR context, not the lamps)",
+        "default)",
     )
     p.add_argument(
         "--traffic-pool",
@@ -177,14 +170,14 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         type=_checked(int, lambda v: v >= 0, "0 or more"),
         metavar="N",
         help="signal-lamp maps from the camera's first stage (stride 4) into F_DSU and the "
-        "camera-only traffic head (8; 0: off; ours, a lamp is 1.5-3 px)",
+        "camera-only traffic head (0: off; ours)",
     )
     p.add_argument(
         "--pixel-lamp-channels",
         type=_checked(int, lambda v: v >= 0, "0 or more"),
         metavar="N",
         help="signal-lamp maps from per-pixel colour detectors on the camera image (stride 1) "
-        "beside them (8; 0: off; ours, a 1x1 conv and GELU per pixel, max-pooled to 8x8)",
+        "beside them (0: off; ours, a 1x1 conv and GELU per pixel, max-pooled to 8x8)",
     )
     p.add_argument(
         "--no-traffic-residual",
@@ -198,14 +191,29 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         type=_checked(float, lambda v: 0.0 <= v < 1.0, "in [0, 1)"),
         metavar="P",
         help="in training, drop F_DSU's correction of each traffic logit with probability P "
-        "(dropout; 0.5; 0: off; ours)",
+        "(dropout; 0: off; ours)",
     )
-    p.add_argument("--compile", action="store_true", default=None, help="torch.compile the model")
+    p.add_argument(
+        "--compile",
+        action="store_true",
+        default=None,
+        help="torch.compile the model (default: off)",
+    )
     p.add_argument("--device", choices=DEVICES, default="auto", help=DEVICE_HELP)
     p.add_argument(
         "--resume",
         action="store_true",
         help="continue OUT/last.pt exactly; only --epochs, --shards, --workers, --compile may change",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace the run in OUT (its checkpoint, logs and TensorBoard events) and start anew",
+    )
+    p.add_argument(
+        "--allow-unfinished",
+        action="store_true",
+        help="train on a build that is not finished (its _manifest.json says building)",
     )
     ablation = p.add_argument_group("ablations (the paper's Table III)")
     for flag, what in (
@@ -221,6 +229,30 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         default=None,
         help="LiDAR input of the current sweep only (2 channels)",
     )
+    _preset_defaults(p)
+
+
+def _preset_defaults(p: argparse.ArgumentParser) -> None:
+    """Append to the help of each flag that sets a config field the value it takes when left
+    out: the preset's (`paper`, `tiny`), read from training/config.py so that it cannot drift;
+    on --resume, the checkpoint's."""
+    for action in p._actions:
+        if action.default is not None or (action.help or "").count("default:"):
+            continue
+        if action.dest in TRAIN_FLAGS:
+            which, field = 1, TRAIN_FLAGS[action.dest]
+        elif action.dest in MODEL_FLAGS:
+            which, field = 0, MODEL_FLAGS[action.dest]
+        else:
+            continue
+        values = {name: getattr(cfgs[which], field) for name, cfgs in PRESETS.items()}
+        if any(isinstance(v, bool) for v in values.values()):
+            continue  # a switch: its help says what it turns on or off
+        shown = {k: ",".join(v) or "none" if isinstance(v, tuple) else v for k, v in values.items()}
+        if len(set(shown.values())) == 1:
+            action.help += f" (default: {next(iter(shown.values()))})"
+        else:
+            action.help += f" (default: {', '.join(f'{k} {v}' for k, v in shown.items())})"
 
 
 FIT_EPILOG = """\
@@ -291,9 +323,64 @@ def _configs(args) -> tuple[ModelConfig, TrainConfig]:
 def _run_fit(args) -> int:
     from training.fit import fit
 
+    if args.resume and args.force:
+        raise UserError("--resume continues the run in OUT, --force replaces it: give one")
     model_cfg, train_cfg = _configs(args)
+    out = outputs.check_dir(train_cfg.out)
+    _check_unfinished_build(Path(train_cfg.shards), args.allow_unfinished)
+    if not args.resume:
+        _fresh_run_dir(out, args.force)
     fit(model_cfg, train_cfg, resume=args.resume, device=args.device)
     return 0
+
+
+def _fresh_run_dir(out: Path, force: bool) -> None:
+    """Refuse a run directory that holds a run (unless `force`: then remove what `train fit`
+    wrote there, so no old log line or TensorBoard event is read as the new run's)."""
+    from training.fit import CHECKPOINT, METRICS, STEPS, TENSORBOARD
+
+    found = [n for n in (CHECKPOINT, METRICS, STEPS, TENSORBOARD) if (out / n).exists()]
+    if not found:
+        return
+    if not force:
+        raise UserError(
+            f"{out} holds a run ({', '.join(found)}); continue it with --resume or replace it "
+            "with --force"
+        )
+    for name in found:
+        path = out / name
+        shutil.rmtree(path) if path.is_dir() else path.unlink()
+
+
+def _check_unfinished_build(shards: Path, allowed: bool) -> None:
+    """Refuse shards whose build is still running or was interrupted (unless `allowed`)."""
+    manifest = shards / "_manifest.json"  # datagen.manifest.MANIFEST (training reads no datagen)
+    if allowed or not manifest.is_file():
+        return
+    try:
+        doc = json.loads(manifest.read_text())
+    except (OSError, ValueError):
+        return  # not a manifest of ours: data.scan judges the shards
+    if isinstance(doc, dict) and doc.get("status") == "building":
+        frames = (doc.get("statistics") or {}).get("frames", "?")
+        asked = (doc.get("build") or {}).get("frames", "?")
+        raise UserError(
+            f"{shards}: the build is not finished ({manifest.name}: building, {frames} of "
+            f"{asked} frames); run the same `datagen build` again to finish it, or give "
+            "--allow-unfinished to train on what is there"
+        )
+
+
+def _fit_resume_hint(args) -> str | None:
+    """After a stop: how to continue, if a checkpoint was written."""
+    from training.fit import CHECKPOINT
+
+    ckpt = Path(args.out or TrainConfig.out) / CHECKPOINT
+    if not ckpt.is_file():
+        return None
+    if args.resume:
+        return f"run the same command again to continue from {ckpt}"
+    return f"run it again with --resume (and without --force) to continue from {ckpt}"
 
 
 def _add_curves(p: argparse.ArgumentParser) -> None:
@@ -321,8 +408,10 @@ def _add_eval(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--out", metavar="JSON", help="JSON file for the metrics; default CKPT's stem + .eval.json"
     )
-    p.add_argument("--batch-size", type=_positive_int, default=16, metavar="N")
-    p.add_argument("--workers", type=_workers, default=2, metavar="N")
+    p.add_argument("--batch-size", type=_positive_int, default=16, metavar="N", help="frames")
+    p.add_argument(
+        "--workers", type=_workers, default=2, metavar="N", help="DataLoader worker processes"
+    )
     p.add_argument("--device", choices=DEVICES, default="auto", help=DEVICE_HELP)
 
 
@@ -338,10 +427,10 @@ def _add_analyze(p: argparse.ArgumentParser) -> None:
         "--shards", metavar="DIR", help="frames to average over; default the fit's --shards"
     )
     p.add_argument(
-        "--frames", type=_positive_int, default=256, metavar="N", help="at most this many (256)"
+        "--frames", type=_positive_int, default=256, metavar="N", help="at most this many"
     )
     p.add_argument("--out", metavar="JSON", help="JSON file; default CKPT's stem + .analyze.json")
-    p.add_argument("--batch-size", type=_positive_int, default=16, metavar="N")
+    p.add_argument("--batch-size", type=_positive_int, default=16, metavar="N", help="frames")
     p.add_argument("--device", choices=DEVICES, default="auto", help=DEVICE_HELP)
 
 
@@ -368,7 +457,7 @@ def _add_show(p: argparse.ArgumentParser) -> None:
         "--speed",
         type=_positive_float,
         default=1.0,
-        help="video speed-up over the recording's 2 Hz (default 1)",
+        help="video speed-up over the recording's 2 Hz",
     )
 
 
@@ -378,40 +467,30 @@ def _run_show(args) -> int:
     return run(args)
 
 
-COMMANDS = {
-    "fit": ("train the model; writes OUT/last.pt and OUT/metrics.jsonl", _add_fit, _run_fit),
-    "eval": ("planning, detection, BEV, traffic and weather metrics", _add_eval, _run_eval),
-    "analyze": ("cosine similarity of ECA channel weights (Table II)", _add_analyze, _run_analyze),
-    "show": ("a PNG or video of inputs and predictions (Fig. 5)", _add_show, _run_show),
-    "curves": ("a PNG of a run's loss curves and validation metrics", _add_curves, _run_curves),
-}
-EPILOGS = {"fit": FIT_EPILOG}
+COMMANDS = (
+    cli.Command(
+        "fit",
+        "train the model; writes OUT/last.pt and OUT/metrics.jsonl",
+        _add_fit,
+        _run_fit,
+        resume=_fit_resume_hint,
+        epilog=FIT_EPILOG,
+    ),
+    cli.Command(
+        "eval", "planning, detection, BEV, traffic and weather metrics", _add_eval, _run_eval
+    ),
+    cli.Command(
+        "analyze", "cosine similarity of ECA channel weights (Table II)", _add_analyze, _run_analyze
+    ),
+    cli.Command("show", "a PNG or video of inputs and predictions (Fig. 5)", _add_show, _run_show),
+    cli.Command(
+        "curves", "a PNG of a run's loss curves and validation metrics", _add_curves, _run_curves
+    ),
+)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = _Parser(
-        prog="train", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
-    for name, (help_, add, _) in COMMANDS.items():
-        add(
-            sub.add_parser(
-                name,
-                help=help_,
-                description=help_,
-                epilog=EPILOGS.get(name),
-                formatter_class=argparse.RawDescriptionHelpFormatter,
-            )
-        )
-    args = parser.parse_args(argv)
-    try:
-        return int(COMMANDS[args.command][2](args) or 0)
-    except UserError as e:
-        print(f"train {args.command}: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"train {args.command}: interrupted", file=sys.stderr)
-        return 130
+    return cli.main("train", __doc__, COMMANDS, argv)
 
 
 if __name__ == "__main__":

@@ -13,9 +13,9 @@ throughput, and one for the validation metrics. Needs matplotlib (the `curves` e
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
+from schemas import outputs
 from training.errors import UserError
 from training.fit import METRICS, STEPS
 
@@ -38,6 +38,11 @@ def draw(run: Path, out: Path) -> Path:
     """Draw the curves of run directory `run` into the PNG `out` (written atomically)."""
     steps, epochs = _read_jsonl(run / STEPS), _read_jsonl(run / METRICS)
     if not steps and not epochs:
+        if (run / STEPS).is_file() or (run / METRICS).is_file():
+            raise UserError(
+                f"{run}: its logs are empty ({STEPS}, {METRICS}): the fit stopped before its "
+                "first logged step"
+            )
         raise UserError(f"{run}: no {STEPS} or {METRICS} (not a `train fit` run directory?)")
     try:
         import matplotlib
@@ -97,21 +102,21 @@ def draw(run: Path, out: Path) -> Path:
         ax.axis("off")
     fig.suptitle(str(run))
     fig.tight_layout()
-    tmp = out.with_name(f".{out.name}.tmp.png")
     try:
-        fig.savefig(tmp, dpi=80)
-    except OSError as e:
-        raise UserError(f"{out}: cannot write ({e.strerror})") from None
+        with outputs.atomic(out) as tmp:
+            fig.savefig(tmp, dpi=80, format="png")
     finally:
         plt.close(fig)
-    os.replace(tmp, out)
     return out
 
 
 def run(args) -> int:
     run_dir = Path(args.run)
+    if run_dir.is_file():
+        raise UserError(f"--run {run_dir}: not a run directory (give the --out of `train fit`)")
     if not run_dir.is_dir():
-        raise UserError(f"{run_dir}: no such run directory")
-    out = draw(run_dir, Path(args.out) if args.out else run_dir / "curves.png")
+        raise UserError(f"--run {run_dir}: no such run directory")
+    out = outputs.check_file(args.out or run_dir / "curves.png", "--out", suffixes=(".png",))
+    out = draw(run_dir, out)
     print(f"wrote {out}")
     return 0

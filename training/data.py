@@ -115,6 +115,11 @@ def split(
         if unknown:
             known = ", ".join(sorted(index.town.unique()))
             raise UserError(f"--val-towns: no town {', '.join(unknown)} in the shards ({known})")
+        if set(index.town) <= set(val_towns):
+            raise UserError(
+                f"--val-towns {','.join(val_towns)} holds out every town of the shards: none "
+                "left to train on"
+            )
         return index.town.isin(val_towns).to_numpy()
     n_val = 0
     if val_fraction > 0 and len(episodes) > 1:

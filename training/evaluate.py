@@ -19,15 +19,14 @@ Prints a table and writes the numbers as JSON (default: beside the checkpoint).
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from schemas import BEV_CLASSES, WAYPOINT_TIMES_S, WEATHERS
+from schemas import BEV_CLASSES, WAYPOINT_TIMES_S, WEATHERS, outputs
 from training import data
-from training.checkpoint import load_checkpoint, model_from_checkpoint
+from training.checkpoint import check_sensors, load_checkpoint, model_from_checkpoint
 from training.errors import UserError
 from training.fit import autocast, choose_device, to_device
 from training.model import INPUTS
@@ -280,10 +279,13 @@ def format_table(result: dict) -> str:
 
 
 def run(args) -> int:
+    out = Path(args.out) if args.out else Path(args.ckpt).with_suffix(".eval.json")
+    outputs.check_file(out, "--out", suffixes=(".json",))  # before the computing
     state = load_checkpoint(args.ckpt)
     device = choose_device(args.device)
     model = model_from_checkpoint(state, device)
     index = data.scan(args.shards)
+    check_sensors(state, data.sensor_config(index), args.shards, args.ckpt)
     if args.split == "val":
         index = index[index.episode_id.isin(state.get("val_episodes", []))]
         if index.empty:
@@ -298,8 +300,7 @@ def run(args) -> int:
         "split": args.split,
         **result,
     }
-    out = Path(args.out) if args.out else Path(args.ckpt).with_suffix(".eval.json")
-    out.write_text(json.dumps(result, indent=2) + "\n")
+    outputs.write_json(out, result, indent=2)
     print(format_table(result))
     print(f"\nwrote {out}")
     return 0

@@ -30,11 +30,11 @@ import cv2
 import numpy as np
 import torch
 
-from schemas import BEV_SIZE_PX, FRAME_RATE_HZ, WEATHERS, ego_to_bev_px
+from schemas import BEV_SIZE_PX, FRAME_RATE_HZ, WEATHERS, ego_to_bev_px, outputs
 from schemas.dataset import box_corners
-from schemas.video import VideoError, VideoWriter, prepare_output
+from schemas.video import CODECS, VideoError, VideoWriter, prepare_output
 from training import data
-from training.checkpoint import load_checkpoint, model_from_checkpoint
+from training.checkpoint import check_sensors, load_checkpoint, model_from_checkpoint
 from training.errors import UserError
 from training.model import INPUTS
 from training.targets import centres_to_objects, decode_centres, split_density
@@ -199,9 +199,14 @@ def _forward(model, samples: list[dict]) -> dict[str, torch.Tensor]:
 
 @torch.no_grad()
 def run(args) -> int:
+    if getattr(args, "video", None):  # every output checked before the drawing
+        outputs.check_file(args.video, "--video", suffixes=tuple(CODECS))
+    elif args.out:
+        outputs.check_file(args.out, "--out", suffixes=(".png",))
     state = load_checkpoint(args.ckpt)
     model = model_from_checkpoint(state, "cpu")
     index = data.scan(args.shards)
+    check_sensors(state, data.sensor_config(index), args.shards, args.ckpt)
     if getattr(args, "video", None):
         try:
             return write_video(model, _episode_frames(index, args.episode), args.video, args.speed)

@@ -20,7 +20,6 @@ import dataclasses
 import functools
 import json
 import math
-import signal
 import sys
 import time
 from collections import Counter
@@ -50,6 +49,8 @@ from datagen.dataset.plan import (
     plan,
 )
 from datagen.errors import UserError
+from schemas import outputs
+from schemas.errors import Stopped
 
 HELP = "generate the dataset: driving episodes across towns and weathers, as Parquet shards"
 SUMMARY_COUNTS = (
@@ -307,13 +308,10 @@ def _build(cfg, out_dir, options: RunOptions, force, runner, progress_bar) -> Bu
             raise type(e)(
                 f"{e}; stopped with {n_done} of {cfg.frames} frames done; {RESUME}", e.keys
             ) from None
-        print(
-            f"datagen build: {what} with {n_done} of {cfg.frames} frames done; {RESUME}",
-            file=sys.stderr,
-        )
-        if sigterm and not isinstance(e, executors.Terminated):
-            raise executors.Terminated() from None
-        raise
+        # the runner (schemas/cli.py) prints it as `datagen build: ...`, exit 143 or 130
+        raise Stopped(
+            f"{what} with {n_done} of {cfg.frames} frames done; {RESUME}", sigterm
+        ) from None
     finally:
         bar.close()
     report.elapsed_s = time.perf_counter() - start
@@ -393,7 +391,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--frames", type=int, default=PAPER_FRAMES, help="frames in total (default: %(default)s)"
     )
     p.add_argument("--seed", type=int, default=0, help="the build's seed (default: 0)")
-    p.add_argument("--out", type=Path, default=Path("data/shards"), help="output dir (%(default)s)")
+    p.add_argument("--out", type=Path, default=Path("data/shards"), help="dataset directory")
     p.add_argument(
         "--workers", type=int, default=None, help="parallel episodes (default: all cores)"
     )
@@ -401,7 +399,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--episode-seconds",
         type=float,
         default=EPISODE_SECONDS,
-        help="driving time per episode (default: %(default)s)",
+        help="simulated driving time per episode, s (default: %(default)s)",
     )
     p.add_argument(
         "--weather-mix",
@@ -414,7 +412,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="FIELD=VALUE",
-        help="override a SensorConfig field, e.g. --sensor jpeg_quality=80 (repeatable)",
+        help="override a SensorConfig field (datagen/episode.py; nested: camera.crop_px=128 or "
+        'camera={"crop_px": 128}), e.g. --sensor jpeg_quality=80 (repeatable; default: the '
+        "paper's sensors)",
     )
     p.add_argument(
         "--force", action="store_true", help="replace an existing dataset in --out (any args)"
@@ -464,8 +464,27 @@ def parse_weather_mix(text: str | None) -> tuple[tuple[str, float], ...] | None:
     return tuple((w, mix[w]) for w in schemas.WEATHERS if w in mix)
 
 
+# --sensor values that shape the data wrong or crash a worker if out of range (a float must
+# also be finite): FIELD -> (test, what it must be). A field not listed takes any value.
+_positive = (lambda v: v > 0, "positive")
+_non_negative = (lambda v: v >= 0, "0 or more")
+SENSOR_RANGES = {
+    "jpeg_quality": (lambda v: 1 <= v <= 100, "in 1..100"),
+    "pose_noise_m": _non_negative,
+    "pose_noise_rad": _non_negative,
+    **{f"camera.{k}": _positive for k in ("width_px", "height_px", "crop_px", "range_m")},
+    "camera.fov_deg": (lambda v: 0 < v < 180, "in (0, 180) degrees"),
+    **{f"lidar.{k}": _positive for k in ("channels", "azimuth_steps", "range_m")},
+    "lidar.upper_fov_deg": (lambda v: -90 <= v <= 90, "in -90..90 degrees"),
+    "lidar.lower_fov_deg": (lambda v: -90 <= v <= 90, "in -90..90 degrees"),
+    "lidar.ground_threshold_m": _non_negative,
+}
+
+
 def parse_sensors(overrides: list[str]):
-    """SensorConfig with `FIELD=VALUE` overrides (dotted FIELD for nested configs)."""
+    """SensorConfig with `FIELD=VALUE` overrides (dotted FIELD for nested configs, or a JSON
+    object for a whole nested config: `camera={"crop_px": 128}`), each value checked against
+    SENSOR_RANGES here, before anything is built."""
     from datagen.sensors.config import SensorConfig
 
     sensors = SensorConfig()
@@ -474,31 +493,57 @@ def parse_sensors(overrides: list[str]):
         if not sep:
             raise UserError(f"--sensor {item!r}: expected FIELD=VALUE")
         sensors = _replace_path(sensors, name.split("."), value, item)
+    lidar = sensors.lidar
+    if lidar.upper_fov_deg <= lidar.lower_fov_deg:
+        raise UserError("--sensor: lidar.upper_fov_deg must be above lidar.lower_fov_deg")
     return sensors
 
 
-def _replace_path(obj, path: list[str], value: str, item: str):
+def _replace_path(obj, path: list[str], value, item: str, where: str = ""):
+    """`obj` with field path[0] (nested: path[1:]) set from `value` (text, or a JSON value
+    inside a JSON object); UserError naming `item` for anything it cannot take."""
     fields = {f.name: f for f in dataclasses.fields(obj)} if dataclasses.is_dataclass(obj) else {}
     if path[0] not in fields:
-        raise UserError(f"--sensor {item!r}: no field {path[0]!r} (fields: {', '.join(fields)})")
-    current = getattr(obj, path[0])
+        raise UserError(f"--sensor {item}: no field {path[0]!r} (fields: {', '.join(fields)})")
+    current, name = getattr(obj, path[0]), where + path[0]
     if len(path) > 1:
-        return dataclasses.replace(obj, **{path[0]: _replace_path(current, path[1:], value, item)})
+        new = _replace_path(current, path[1:], value, item, name + ".")
+        return dataclasses.replace(obj, **{path[0]: new})
+    if dataclasses.is_dataclass(current):  # a JSON object of its fields
+        try:
+            doc = json.loads(value) if isinstance(value, str) else value
+        except ValueError:
+            doc = None
+        if not isinstance(doc, dict):
+            raise UserError(f"--sensor {item}: {name} takes a JSON object of its fields")
+        for k, v in doc.items():
+            current = _replace_path(current, [k], v, item, name + ".")
+        return dataclasses.replace(obj, **{path[0]: current})
     try:
         if isinstance(current, bool):
-            new = {"true": True, "false": False, "1": True, "0": False}[value.lower()]
+            text = str(value).lower()
+            new = {"true": True, "false": False, "1": True, "0": False}[text]
         elif isinstance(current, int | float):
+            if isinstance(value, bool):
+                raise ValueError
             new = type(current)(value)
+            if not isinstance(value, str) and new != value:  # 1.5 from JSON for an int field
+                raise ValueError
         elif isinstance(current, str) or current is None:
-            new = value
+            new = str(value)
         else:
-            new = type(current)(json.loads(value))
+            new = type(current)(json.loads(value) if isinstance(value, str) else value)
     except (KeyError, ValueError, TypeError):
-        raise UserError(f"--sensor {item!r}: cannot read {value!r} for {path[0]}") from None
+        raise UserError(f"--sensor {item}: cannot read {value!r} for {name}") from None
+    if isinstance(new, float) and not math.isfinite(new):
+        raise UserError(f"--sensor {item}: {name} must be a finite number, got {value}")
+    test, need = SENSOR_RANGES.get(name, (None, ""))
+    if test is not None and not test(new):
+        raise UserError(f"--sensor {item}: {name} must be {need}, got {value}")
     try:
         return dataclasses.replace(obj, **{path[0]: new})
     except ValueError as e:  # the config's own check (__post_init__)
-        raise UserError(f"--sensor {item!r}: {e}") from None
+        raise UserError(f"--sensor {item}: {e}") from None
 
 
 def resolve_towns(args) -> tuple[Town, ...]:
@@ -517,6 +562,12 @@ def resolve_towns(args) -> tuple[Town, ...]:
         names = list(towns_module.TOWN_NAMES)
     result: list[Town] = []
     for name in names:
+        if name in towns_module.HELD_OUT_TOWNS:
+            raise UserError(
+                f"town {name!r} is the held-out town (`drive eval` on drive/routes/heldout_*.json"
+                f" drives it); it is never built into a dataset. Built-in towns: "
+                f"{', '.join(towns_module.TOWN_NAMES)}"
+            )
         if name not in towns_module.TOWN_NAMES:
             raise UserError(
                 f"unknown town {name!r}; built-in towns: {', '.join(towns_module.TOWN_NAMES)}"
@@ -579,12 +630,10 @@ def options_from_args(args) -> RunOptions:
 def run(args) -> int:
     cfg = config_from_args(args)
     options = options_from_args(args)
-    try:
-        report = build(
-            cfg, args.out, force=args.force, progress_bar=not args.no_progress, options=options
-        )
-    except executors.Terminated:
-        return 128 + signal.SIGTERM  # the message is printed; the shell's code for SIGTERM
+    outputs.check_dir(args.out)
+    report = build(
+        cfg, args.out, force=args.force, progress_bar=not args.no_progress, options=options
+    )
     print(summary(report))
     if report.manifest["status"] != "complete":
         print("datagen build: the dataset is incomplete (see above)", file=sys.stderr)

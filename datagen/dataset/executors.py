@@ -37,7 +37,6 @@ results alone (the build's shards and manifest) is the same for any executor and
 
 from __future__ import annotations
 
-import contextlib
 import os
 import resource
 import signal
@@ -50,6 +49,8 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
 from datagen.errors import UserError
+from schemas.cli import sigterm_received, stop_on_sigterm  # noqa: F401  (re-exported)
+from schemas.errors import Terminated  # noqa: F401  (re-exported)
 
 TaskFn = Callable[[object, Callable[[int], None]], object]
 """fn(payload, progress) -> result; payload and result picklable, fn importable by name."""
@@ -123,43 +124,6 @@ class TaskLost(ExecutorError):
 
 class Stalled(ExecutorError):
     """No progress from the task(s) for longer than the watchdog allows."""
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised as KeyboardInterrupt so that one code path stops on either."""
-
-
-_sigterm_received = False
-
-
-def sigterm_received() -> bool:
-    """Whether SIGTERM arrived in the current stop_on_sigterm block (Ray's calls re-raise
-    a KeyboardInterrupt of their own, so the exception's type alone does not tell)."""
-    return _sigterm_received
-
-
-@contextlib.contextmanager
-def stop_on_sigterm():
-    """Within the block, SIGTERM raises Terminated (a KeyboardInterrupt) in the main thread;
-    a second SIGTERM while stopping is ignored so that the clean-up finishes."""
-    global _sigterm_received
-    _sigterm_received = False
-
-    def handler(signum, frame):
-        global _sigterm_received
-        _sigterm_received = True
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        raise Terminated()
-
-    try:
-        previous = signal.signal(signal.SIGTERM, handler)
-    except ValueError:  # not the main thread: leave signals alone
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def _failed(noun: str, key: str, exc_type: str, message: str, tb: str) -> TaskFailed:

@@ -31,7 +31,7 @@ import numpy as np
 
 import schemas
 from datagen.errors import UserError
-from schemas import dataset
+from schemas import dataset, outputs
 from schemas.video import CODECS, VideoError, VideoWriter, prepare_output
 
 HELP = "draw a frame (PNG), an episode (video) or log it to Rerun: camera, LiDAR, BEV, labels"
@@ -53,14 +53,14 @@ LIGHT_RGB = {
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("path", metavar="SHARD_OR_DIR", help="a shard (.parquet) or a dataset directory")
-    p.add_argument("--frame", type=int, default=0, help="row to draw (default 0)")
+    p.add_argument("--frame", type=int, default=0, help="row to draw")
     p.add_argument("--episode", default=None, help="pick this episode; --frame is its frame number")
-    p.add_argument("--out", default=None, help="PNG to write (default frame.png)")
+    p.add_argument("--out", default=None, help="PNG to write (default: frame.png)")
     p.add_argument(
         "--video", metavar="MP4", default=None, help="draw every frame of the episode to a video"
     )
     p.add_argument(
-        "--speed", type=float, default=1.0, help="video speed-up over the recording's 2 Hz (1)"
+        "--speed", type=float, default=1.0, help="video speed-up over the recording's 2 Hz"
     )
     p.add_argument(
         "--rerun", metavar="RRD", default=None, help="log the episode to a Rerun .rrd recording"
@@ -181,14 +181,18 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     path = Path(args.path)
+    # every output checked before any drawing (schemas/outputs.py)
+    if args.video is not None:
+        outputs.check_file(args.video, None, suffixes=tuple(CODECS))
+    if args.rerun is not None:
+        outputs.check_file(args.rerun, None, suffixes=(".rrd",))
     if args.video is None and args.rerun is None:
-        return write_png(path, args.frame, args.episode, Path(args.out or "frame.png"))
+        out = outputs.check_file(args.out or "frame.png", None, suffixes=(".png",))
+        return write_png(path, args.frame, args.episode, out)
+    if args.out is not None:
+        outputs.check_file(args.out, None, suffixes=(".png",))
     if not args.speed > 0:
         raise UserError(f"--speed must be > 0, got {args.speed}")
-    if args.video is not None and Path(args.video).suffix.lower() not in CODECS:
-        raise UserError(f"{args.video}: a video must end in {' or '.join(CODECS)}")
-    if args.rerun is not None and Path(args.rerun).suffix != ".rrd":
-        raise UserError(f"{args.rerun}: a Rerun recording must end in .rrd")
     episode = args.episode
     if episode is None:
         episode = dataset.episode_ids(path)[0]

@@ -232,11 +232,15 @@ def check_manifest(root: Path, reports: list[ShardReport]) -> list[str]:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("path", type=Path, help="dataset directory (or one shard)")
-    p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    p.add_argument(
+        "--workers", type=int, default=None, help="processes, 1 or more (default: all cores)"
+    )
 
 
 def run(args) -> int:
     path: Path = args.path
+    if args.workers is not None and args.workers < 1:
+        raise UserError(f"--workers must be at least 1, got {args.workers}")
     if not path.exists():
         raise UserError(f"{path}: no such file or directory")
     if path.is_file():

@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from datagen.errors import UserError
+from schemas import outputs
 
 HELP = "list the built-in towns (size, junctions, lane-km, sidewalk-km)"
 
@@ -760,8 +761,13 @@ def network_stats(path: Path) -> NetworkStats:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--net", type=Path, help="describe this SUMO network instead")
-    p.add_argument("--cache", type=Path, default=None, help="town cache directory")
+    p.add_argument("--net", type=Path, help="describe this SUMO network instead of the towns")
+    p.add_argument(
+        "--cache",
+        type=Path,
+        default=None,
+        help="where the generated towns are kept (default: ~/.cache/iidsu/towns)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -770,8 +776,9 @@ def run(args: argparse.Namespace) -> int:
         path = check_network(args.net)
         rows.append((path.name.split(".")[0], "user network", path))
     else:
+        cache = outputs.check_dir(args.cache, "--cache") if args.cache is not None else None
         for name in ALL_TOWNS:
-            rows.append((name, RECIPES[name].description, town_net_path(name, args.cache)))
+            rows.append((name, RECIPES[name].description, town_net_path(name, cache)))
     head = (
         f"{'town':<12} {'size (m)':>11} {'lights':>6} {'stop':>5} {'other':>5} "
         f"{'crossings':>9} {'lane-km':>7} {'sidewalk-km':>11}  description"
