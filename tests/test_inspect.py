@@ -153,7 +153,7 @@ def test_bad_input_is_one_line_and_leaves_no_file(tmp_path, capsys, what):
     (tmp_path / "file").write_text("")
     blocked = tmp_path / "file" / out.name  # its folder is a file: unwritable
     assert _inspect(data, "--episode", "synth-0-0", what, blocked) == 2
-    assert "cannot write here" in _error(capsys)
+    assert "file is not a directory" in _error(capsys)
     assert _leftovers(tmp_path, "ep.") == []
 
 

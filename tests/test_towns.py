@@ -32,7 +32,7 @@ def test_a_build_never_draws_the_held_out_town():
     for n in range(1, len(TOWN_NAMES) + 1):
         args = argparse.Namespace(towns=n, town=[], net=[])
         assert "boulevard" not in [t.name for t in resolve_towns(args)]
-    with pytest.raises(UserError, match="unknown town 'boulevard'"):
+    with pytest.raises(UserError, match="'boulevard' is the held-out town"):
         resolve_towns(argparse.Namespace(towns=None, town=["boulevard"], net=[]))
 
 
