@@ -53,7 +53,8 @@ def parse_policy(text: str, device: str = "auto") -> PolicySpec:
         try:
             load_checkpoint(path)
         except TrainError as e:
-            raise UserError(f"--policy {text}: {e}") from None
+            reason = str(e).removeprefix(f"{path}: ")  # its path is in the flag already
+            raise UserError(f"--policy {text}: {reason}") from None
         return PolicySpec("ckpt", path, device)
     raise UserError(f"--policy {text!r}: expected expert, constant or ckpt:PATH")
 

@@ -84,7 +84,7 @@ def _error(capsys, argv):
     rc = cli.main(argv)
     err = capsys.readouterr().err.strip().splitlines()
     assert rc != 0
-    assert len(err) == 1 and err[0].startswith("drive: error:"), err
+    assert len(err) == 1 and err[0].startswith(f"drive {argv[0]}: error:"), err
     return err[0]
 
 
