@@ -15,6 +15,7 @@ import platform
 from pathlib import Path
 
 from drive.score import TABLE_COLUMNS, Summary, summarise
+from schemas import outputs
 
 # The paper's Table III (CARLA 42 Routes), by our variant names; per-km infractions in the
 # order of PAPER_COLUMNS (the paper has no stop-sign column).
@@ -262,6 +263,4 @@ def write(out: Path, preset, preset_name: str, steps) -> Path:
         *_claims(held, swap, analyze),
         "",
     ]
-    path = out / "REPORT.md"
-    path.write_text("\n".join(lines))
-    return path
+    return outputs.write_text(out / "REPORT.md", "\n".join(lines))
