@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import signal
 import sys
 from collections.abc import Callable, Iterator, Sequence
@@ -108,8 +109,7 @@ def run(where: str, command: Command, args: argparse.Namespace) -> int:
         with stop_on_sigterm():
             return int(command.run(args) or 0)
     except UserError as e:
-        print(f"{where}: error: {one_line(e)}", file=sys.stderr)
-        return USER_ERROR
+        status, message = USER_ERROR, f"error: {one_line(e)}"
     except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM as Terminated
         if isinstance(e, Stopped):
             sigterm, message = e.sigterm, str(e)
@@ -119,8 +119,13 @@ def run(where: str, command: Command, args: argparse.Namespace) -> int:
             hint = _resume_hint(command, args)
             if hint:
                 message += f"; {hint}"
-        print(f"{where}: {message}", file=sys.stderr)
-        return TERMINATED if sigterm else INTERRUPTED
+        status = TERMINATED if sigterm else INTERRUPTED
+    # Printed once the exception is gone: the stopped command's frames, and the progress bars
+    # they hold (which draw a last line when freed), go first, so this line is the last.
+    gc.collect()
+    sys.stderr.flush()
+    print(f"{where}: {message}", file=sys.stderr)
+    return status
 
 
 def _resume_hint(command: Command, args: argparse.Namespace) -> str | None:
