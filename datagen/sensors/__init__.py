@@ -11,4 +11,5 @@ Modules (data flows down):
     shading.py      the camera's compiled per-pixel passes
     camera.py       the camera image
     config.py       SensorConfig: both sensors and the encoding
+    overrides.py    `--sensor FIELD=VALUE` -> SensorConfig, values checked
 """
