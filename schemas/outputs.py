@@ -15,6 +15,7 @@ so a crash, Ctrl-C or a full disk never leaves a file a reader takes as whole.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import tempfile
@@ -46,9 +47,9 @@ def _probe(folder: Path, path: Path, flag: str | None) -> None:
         os.close(fd)
         os.unlink(name)
     except OSError as e:
-        raise UserError(
-            f"{_label(path, flag)}: cannot write in {existing} ({e.strerror})"
-        ) from None
+        # /proc and the like answer "No such file or directory" for the folder they list
+        why = f" ({e.strerror})" if e.strerror and e.errno != errno.ENOENT else ""
+        raise UserError(f"{_label(path, flag)}: cannot write in {existing}{why}") from None
 
 
 def check_dir(path: str | Path, flag: str | None = "--out") -> Path:
