@@ -328,7 +328,7 @@ def _run_fit(args) -> int:
     model_cfg, train_cfg = _configs(args)
     out = outputs.check_dir(train_cfg.out)
     _check_unfinished_build(Path(train_cfg.shards), args.allow_unfinished)
-    if not args.resume:
+    if not args.resume and int(os.environ.get("RANK", "0")) == 0:  # torchrun: one rank looks
         _fresh_run_dir(out, args.force)
     fit(model_cfg, train_cfg, resume=args.resume, device=args.device)
     return 0
@@ -349,7 +349,7 @@ def _fresh_run_dir(out: Path, force: bool) -> None:
         )
     for name in found:
         path = out / name
-        shutil.rmtree(path) if path.is_dir() else path.unlink()
+        shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
 
 
 def _check_unfinished_build(shards: Path, allowed: bool) -> None:
