@@ -276,8 +276,8 @@ predicting a correction to the camera-only head's logits (--no-traffic-residual:
 as in the paper) with that correction dropped for half the training frames
 (--traffic-residual-dropout 0.5), the camera
 zoom-out augmentation (--zoom-out 0.55), which shows it lamps at the sizes other junctions
-give, and an optional context weight (--traffic-context-weight W, off by default: 3 measured
-worse), for frames where the ego's speed contradicts the red-light or stop-sign label. The
+give, and an optional context weight (--traffic-context-weight W, off by default), for
+frames where the ego's speed contradicts the red-light or stop-sign label. The
 tiny preset's values (lr 1e-3, batch 8, R = 64) are ours, for CPUs; bench/learn.py measures
 what they learn on a held-out town.
 TransFuser's fusion depth (8 blocks, 4 heads per layer) fills in what the paper leaves out.
