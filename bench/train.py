@@ -45,6 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests/
 from tests.test_training_data import write_shards  # noqa: E402
 from training import data, fit  # noqa: E402
 from training.config import PRESETS  # noqa: E402
+from training.device import autocast, to_device  # noqa: E402
 from training.losses import compute_losses  # noqa: E402
 from training.model import IIDSU, INPUTS  # noqa: E402
 
@@ -59,7 +60,7 @@ def peak_rss_mb() -> float:
 def batch_of(root: Path, output_px: int, batch_size: int, device: torch.device) -> dict:
     stream = data.FrameStream(data.scan(root).iloc[:batch_size], output_px)
     batch = next(iter(data.make_loader(stream, batch_size, 0)))
-    return fit.to_device(batch, device)
+    return to_device(batch, device)
 
 
 def train_rate(
@@ -81,7 +82,7 @@ def train_rate(
     cuda = device.type == "cuda"
 
     def step():
-        with fit.autocast(device):
+        with autocast(device):
             out = model(*(batch[k] for k in INPUTS))
         loss = compute_losses(out, batch, train_cfg)["total"]
         optimizer.zero_grad(set_to_none=True)

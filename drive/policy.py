@@ -79,7 +79,7 @@ class ModelPolicy:
         import torch
 
         from training.checkpoint import load_checkpoint, model_from_checkpoint
-        from training.fit import choose_device
+        from training.device import choose_device
 
         state = load_checkpoint(spec.path)
         check_sensor_config(state, sensor_config, spec.path)
@@ -93,7 +93,7 @@ class ModelPolicy:
         """(4, 2) waypoints, ego frame, m, from one instant's encoded sensors (`ground_png`, the
         current sweep's ground channel, is read by a single-frame LiDAR model only)."""
         from training.data import model_inputs
-        from training.fit import autocast
+        from training.device import autocast
 
         torch = self.torch
         ground = ground_png if self.model.cfg.single_frame_lidar else None

@@ -35,8 +35,8 @@ import torch.nn.functional as F
 from schemas import outputs
 from training import data
 from training.checkpoint import check_sensors, load_checkpoint, model_from_checkpoint
+from training.device import autocast, choose_device, to_device
 from training.errors import UserError
-from training.fit import autocast, choose_device, to_device
 from training.model import IIDSU
 
 LABELS = {"detection": "det&pred", "bev": "BEV", "traffic": "traffic", "weather": "weather"}

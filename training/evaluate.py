@@ -27,8 +27,8 @@ import torch
 from schemas import BEV_CLASSES, WAYPOINT_TIMES_S, WEATHERS, outputs
 from training import data
 from training.checkpoint import check_sensors, load_checkpoint, model_from_checkpoint
+from training.device import autocast, choose_device, to_device
 from training.errors import UserError
-from training.fit import autocast, choose_device, to_device
 from training.model import INPUTS
 from training.targets import N_T, centres_to_objects, decode_centres, split_density
 
@@ -95,7 +95,7 @@ def evaluate(model, loader, device: torch.device, proc=None) -> dict:
     """Every metric of the module docstring for the heads `model` has (in eval mode: BatchNorm
     uses its running statistics; the model's mode is restored after).
 
-    Under DDP (`proc`: training.fit.Process with world > 1) every rank must call it: each
+    Under DDP (`proc`: training.device.Process with world > 1) every rank must call it: each
     measures its own share of the loader's frames and the metrics are of all shares together
     (the raw errors, detections and counts are gathered, then scored once)."""
     was_training = model.training
