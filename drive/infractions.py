@@ -36,7 +36,7 @@ import numpy as np
 
 from datagen.state import AgentState, FrameState
 from drive.geometry import RouteGeometry
-from drive.layout import Layout, box_corners, boxes_overlap
+from drive.layout import Layout, boxes_overlap
 from drive.score import (
     BLOCKED_S,
     BLOCKED_SPEED_MPS,
@@ -44,6 +44,7 @@ from drive.score import (
     DEVIATION_M,
     route_timeout_s,
 )
+from schemas.dataset import box_corners
 
 RED_LIGHT_NEAR_M = 6.0  # the light seen in the step before a crossing belongs to this line
 STOP_ZONE_M = 5.0  # a stop counts within this distance before a stop sign's line

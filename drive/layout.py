@@ -17,17 +17,6 @@ from datagen.sensors.mesh import Material
 from datagen.sensors.scene import TRUNK_RGB, StaticScene
 
 
-def box_corners(x_m: float, y_m: float, yaw_rad: float, length_m: float, width_m: float):
-    """(4, 2) world corners of a box centred at (x, y): front-left, rear-left, rear-right,
-    front-right (counter-clockwise)."""
-    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
-    hl, hw = 0.5 * length_m, 0.5 * width_m
-    local = np.array([[hl, hw], [-hl, hw], [-hl, -hw], [hl, -hw]])
-    return np.stack(
-        [x_m + c * local[:, 0] - s * local[:, 1], y_m + s * local[:, 0] + c * local[:, 1]], 1
-    )
-
-
 def boxes_overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Separating-axis test of one convex quad a (4, 2) against quads b (N, 4, 2) -> (N,) bool
     (touching edges count as overlap)."""

@@ -14,7 +14,8 @@ reader of `data/` skips `data/README.md`, where pandas would fail on it. A path 
 is taken as the one shard.
 
 **Box geometry**: `box_corners` turns the `boxes` column's centre, yaw and extents into corner
-points, in the same frame as the centre (the ego frame at t for the shards' boxes).
+points, in the same frame as the centre (the ego frame at t for the shards' boxes; the world
+frame in `drive`'s infraction judge, which uses the same function).
 """
 
 from __future__ import annotations

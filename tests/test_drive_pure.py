@@ -22,7 +22,8 @@ from drive.controller import (
 )
 from drive.geometry import RouteGeometry, StopLine
 from drive.infractions import InfractionTracker, time_to_collision
-from drive.layout import Layout, box_corners, boxes_overlap
+from drive.layout import Layout, boxes_overlap
+from schemas.dataset import box_corners
 
 _NO_DRAG = VehicleConfig(coast_decel_mps2=0.0)
 
