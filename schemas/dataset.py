@@ -4,7 +4,7 @@
     row = read_row("data/", frame=10)              # one frame as a dict of Python values
     table = read_episode("data/", "grid_small-0-0003")   # one episode's frames, in order
 
-**Which files are shards** (one rule for `datagen inspect`, `datagen validate` and `train`):
+**Which files are shards** (one rule for `datagen build`, `inspect`, `validate` and `train`):
 every file named `*.parquet` under the directory, at any depth, except those in which a file or
 directory name on the way starts with `_` or `.` (pyarrow's and pandas's rule for data files:
 `_manifest.json`, `_frame.png`, temporary `_*.parquet` while a build writes), in the order of

@@ -277,7 +277,9 @@ def test_foreign_parquet_files_are_never_touched(tmp_path):
     pd.DataFrame({"a": [1]}).to_parquet(tmp_path / "mine.parquet")
     (tmp_path / "alpha").mkdir()
     (tmp_path / "alpha" / "notes.parquet").write_bytes(b"not even parquet")
-    for name in ("alpha/notes.parquet", "mine.parquet"):
+    (tmp_path / "alpha" / "beta").mkdir()  # any depth: a reader of tmp_path would read it too
+    pd.DataFrame({"b": [2]}).to_parquet(tmp_path / "alpha" / "beta" / "deep.parquet")
+    for name in ("alpha/beta/deep.parquet", "alpha/notes.parquet", "mine.parquet"):
         with pytest.raises(UserError, match=f"not iidsu shards \\(e.g. {tmp_path / name}\\)"):
             build.build(fake_config(), tmp_path, runner=fake_runner, force=True, progress_bar=False)
         assert (tmp_path / name).exists()

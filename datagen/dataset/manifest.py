@@ -22,6 +22,7 @@ import schemas
 from datagen.dataset import shards
 from datagen.dataset.plan import BuildConfig, TownPlan, is_done
 from datagen.errors import UserError
+from schemas.dataset import shard_files
 
 MANIFEST = "_manifest.json"
 LOCK = "_build.lock"
@@ -49,11 +50,9 @@ def load_manifest(out_dir: Path) -> dict | None:
 
 
 def _iidsu_shards(out_dir: Path) -> Iterable[tuple[Path, dict | None]]:
-    """(path, file metadata, {} if unreadable, None if not an iidsu shard) for every *.parquet
-    directly in `out_dir` or one of its subdirectories (the layout datagen writes)."""
-    for path in sorted([*out_dir.glob("*.parquet"), *out_dir.glob("*/*.parquet")]):
-        if path.name.startswith(("_", ".")) or path.parent.name.startswith(("_", ".")):
-            continue
+    """(path, file metadata, {} if unreadable, None if not an iidsu shard) for every file a
+    reader of `out_dir` takes as a shard (`schemas.dataset.shard_files`: the one rule)."""
+    for path in shard_files(out_dir):
         try:
             meta = pq.read_schema(path).metadata or {}
         except (OSError, pa.ArrowException):
