@@ -31,7 +31,7 @@ from datagen.sensors import config, lidar, raycast  # noqa: E402
 from datagen.sensors.scene import load_static_scene  # noqa: E402
 from datagen.world import World, WorldConfig  # noqa: E402
 from datagen.world.towns import town_net_path  # noqa: E402
-from schemas import codecs  # noqa: E402
+from schemas import FRAME_PERIOD_S, codecs  # noqa: E402
 
 TARGET_SENSOR_OVER_BARE = 1.3
 
@@ -63,7 +63,7 @@ def measure(
         for k in range(skip + frames + labels.FUTURE_FRAMES):
             t, c = time.perf_counter(), time.process_time()
             if k:
-                world.advance(0.5)
+                world.advance(FRAME_PERIOD_S)
             if world.ended:
                 print(f"world ended early: {world.ended}")
                 break

@@ -31,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from datagen.world import World, WorldConfig, record  # noqa: E402
 from datagen.world.behaviour import draw_condition  # noqa: E402
 from datagen.world.towns import TOWN_NAMES, town_net_path  # noqa: E402
+from schemas import FRAME_RATE_HZ  # noqa: E402
 
 
 def run_episode(job: tuple[str, int, float]) -> dict:
@@ -41,7 +42,7 @@ def run_episode(job: tuple[str, int, float]) -> dict:
     t0 = time.perf_counter()
     with World(cfg) as world:
         t1 = time.perf_counter()
-        frames = sum(1 for _ in record(world, int(seconds * 2) + 1))
+        frames = sum(1 for _ in record(world, int(seconds * FRAME_RATE_HZ) + 1))
         t2 = time.perf_counter()
         st = world.stats
     return dict(

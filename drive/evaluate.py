@@ -44,10 +44,10 @@ from drive.controller import (
 )
 from drive.policy import PolicySpec, constant_waypoints
 from drive.routes import Route, resolve_net
-from schemas import outputs
+from schemas import FRAME_PERIOD_S, outputs
 
 CREEP_STUCK_S = CreepConfig().stuck_s
-PLAN_PERIOD_S = 0.5  # the policy plans at the data's 2 Hz
+PLAN_PERIOD_S = FRAME_PERIOD_S  # the policy plans at the data's rate (2 Hz)
 STEP_S = 0.1  # SUMO step: the controller and the infraction tracker run every step
 # The expert's world gives up on an ego that stands 80 s or that SUMO teleports out of a jam:
 # for the score that is the agent blocked.

@@ -31,13 +31,12 @@ LEAD_HALF_WIDTH_M = 1.8  # a vehicle whose centre is this close to the ego's axi
 LEAD_RANGE_M = 30.0
 BLOCK_FRAMES = 10
 BOOTSTRAP_DRAWS = 2000
-STEP_S = 0.5  # between waypoints (schemas.WAYPOINT_TIMES_S)
 
 
 def planned_speed(waypoints: np.ndarray) -> float:
     """Mean speed (m/s) of a plan: (4, 2) ego-frame waypoints at +0.5 .. +2.0 s from the ego."""
     pts = np.vstack([[0.0, 0.0], np.asarray(waypoints, np.float64)])
-    return float(np.hypot(*np.diff(pts, axis=0).T).mean() / STEP_S)
+    return float(np.hypot(*np.diff(pts, axis=0).T).mean() / schemas.FRAME_PERIOD_S)
 
 
 def lead_rear_m(frame: FrameState) -> float | None:

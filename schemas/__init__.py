@@ -54,9 +54,10 @@ EXPERT_REASONS = (
     "route_end",  # stopping at the end of the route
 )
 BOX_CLASSES = ("vehicle", "pedestrian", "bicycle")
-BOX_TIMESTEPS = (0, 1, 2)  # t, t+0.5 s, t+1.0 s
-WAYPOINT_TIMES_S = (0.5, 1.0, 1.5, 2.0)
-FRAME_RATE_HZ = 2.0
+FRAME_RATE_HZ = 2.0  # recorded frames (Sec. IV-A); the policy plans at the same rate in `drive`
+FRAME_PERIOD_S = 1.0 / FRAME_RATE_HZ  # 0.5 s between consecutive frames
+BOX_TIMESTEPS = (0, 1, 2)  # frames: t, t+0.5 s, t+1.0 s
+WAYPOINT_TIMES_S = tuple(k * FRAME_PERIOD_S for k in (1, 2, 3, 4))  # one per frame: 0.5 .. 2.0 s
 
 IMAGE_SIZE_PX = 256  # stored camera crop, square
 IMAGE_FULL_W_PX, IMAGE_FULL_H_PX, IMAGE_FOV_DEG = 400, 300, 100.0
