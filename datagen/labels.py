@@ -28,11 +28,11 @@ from schemas import (
     BEV_SIDE_M,
     BEV_SIZE_PX,
     BOX_TIMESTEPS,
+    FRAME_PERIOD_S,
     WAYPOINT_TIMES_S,
     ego_to_bev_px,
 )
 
-FRAME_PERIOD_S = 0.5  # recorded frames are 2 Hz
 FUTURE_FRAMES = round(max(WAYPOINT_TIMES_S) / FRAME_PERIOD_S)  # 4: waypoints reach +2.0 s
 _SUBPIXEL_BITS = 3  # fillPoly vertex precision: 1/8 px
 

@@ -82,7 +82,7 @@ from datagen.world.fleet import EGO_DIMS_M, EGO_ID, dims
 from datagen.world.route import PATH_LOOKAHEAD_M, SIGNAL_RANGE_M
 from datagen.world.sumo import Collision, Snapshot, StepEvents, Sumo, box_centre
 from datagen.world.traffic import Traffic
-from schemas import WEATHERS
+from schemas import FRAME_PERIOD_S, WEATHERS
 
 AGENT_RADIUS_M = 100.0  # agents within this distance of the ego are in FrameState.agents
 BLOCKED_S = 80.0  # ego standing this long (not at a red light) ends the episode ("blocked")
@@ -779,7 +779,7 @@ class World:
 def record(
     world: World,
     n_frames: int,
-    period_s: float = 0.5,
+    period_s: float = FRAME_PERIOD_S,
     drop_before_collision_s: float = COLLISION_DROP_S,
 ) -> Iterator[FrameState]:
     """Yield `world.state()` now and every `period_s` (2 Hz by default) until `n_frames` states
