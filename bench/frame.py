@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 
 from datagen import episode, labels  # noqa: E402
-from datagen.sensors import config, lidar, raycast  # noqa: E402
+from datagen.sensors import config, lidar  # noqa: E402
 from datagen.sensors.scene import load_static_scene  # noqa: E402
 from datagen.world import World, WorldConfig  # noqa: E402
 from datagen.world.towns import town_net_path  # noqa: E402
@@ -106,7 +106,7 @@ def measure(
             # The same rays, bare: one Embree query per logged cast (datagen/sensors/embree.py).
             tb, cb = time.perf_counter(), time.process_time()
             for query, emb, o, d, tfar in scene.ray_log:
-                raycast.QUERIES[query](emb, o, d, tfar)
+                getattr(scene.backend, query)(emb, o, d, tfar)
             bare_s.append(time.perf_counter() - tb)
             bare_cpu.append(time.process_time() - cb)
             sensor_s.append(t4 - t2)

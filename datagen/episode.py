@@ -116,7 +116,7 @@ class Sensors:
             config.lidar.range_m + abs(config.lidar.mount_x_m),
             config.camera.range_m + abs(config.camera.mount_x_m),
         )
-        self.builder = SceneBuilder(static, reach_m=reach)
+        self.builder = SceneBuilder(static, reach_m=reach, raycaster=config.raycaster)
         lidar_rng, camera_rng, pose_rng, sun_rng = rng.spawn(4)
         self.lidar_rng, self.camera_rng, self.pose_rng = lidar_rng, camera_rng, pose_rng
         self.sun = camera.sun_direction(sun_rng)

@@ -5,8 +5,9 @@ Modules (data flows down):
     labelmap.py     the BEV label polygons kept beside the static mesh
     scene.py        the static scene of a town (mesh, label map), built once and cached
     actors.py       the road users' boxes as triangles
-    embree.py       Embree 4 called from numba (the ray queries)
-    raycast.py      the culled per-frame scene and ray batches on it
+    embree.py       Embree 4 called from numba (the ray queries: the fast path)
+    trimesh_rays.py the same queries through trimesh.ray (the portable path)
+    raycast.py      the culled per-frame scene and ray batches on it; picks the ray backend
     lidar.py        the LiDAR sweep and its BEV counts
     shading.py      the camera's compiled per-pixel passes
     camera.py       the camera image

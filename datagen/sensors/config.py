@@ -6,6 +6,7 @@ from dataclasses import asdict, dataclass, field
 
 import schemas
 from datagen.sensors import camera, lidar
+from datagen.sensors.raycast import RAYCASTERS, ray_backend
 from schemas import codecs
 
 HISTORY = 2  # past sweeps in the LiDAR BEV (t-1, t-2)
@@ -17,6 +18,11 @@ class SensorConfig:
 
     Attributes:
         lidar, camera: the two sensors.
+        raycaster: how their rays are cast (datagen/sensors/raycast.py): "embree", the fast path
+            (where it cannot load, trimesh's, with one warning line), or "trimesh", trimesh.ray
+            on the same Embree (`--sensor raycaster=trimesh`): the same hits, distances equal
+            to ~1e-5 m. In iidsu.config_json only where trimesh's ran, so the default's shards
+            keep their bytes.
         jpeg_quality: of the stored camera crop.
         pose_noise_m, pose_noise_rad: GPS/IMU noise (standard deviation) on the poses that align
             the t-1 and t-2 sweeps; 0 = exact recorded poses.
@@ -28,12 +34,15 @@ class SensorConfig:
 
     lidar: lidar.LidarConfig = field(default_factory=lidar.LidarConfig)
     camera: camera.CameraConfig = field(default_factory=camera.CameraConfig)
+    raycaster: str = "embree"
     jpeg_quality: int = codecs.DEFAULT_JPEG_QUALITY
     pose_noise_m: float = 0.0
     pose_noise_rad: float = 0.0
     target_point: str = "sparse"
 
     def __post_init__(self):
+        if self.raycaster not in RAYCASTERS:
+            raise ValueError(f"raycaster must be one of {RAYCASTERS}")
         from datagen.world.route import TARGET_FORMS
 
         if self.target_point not in TARGET_FORMS:
@@ -41,9 +50,13 @@ class SensorConfig:
 
     def to_dict(self) -> dict:
         """Everything that shapes the data, for the shard metadata (iidsu.config_json): this
-        config, the weather tables, the BEV grid and the recording rates."""
+        config, the weather tables, the BEV grid and the recording rates (the ray backend only
+        where it is trimesh's: forced, or the fast path cannot load here)."""
+        config = asdict(self)
+        if ray_backend(config.pop("raycaster")).NAME != "embree":
+            config["raycaster"] = "trimesh"
         return {
-            **asdict(self),
+            **config,
             "lidar_weather": {k: asdict(v) for k, v in lidar.LIDAR_WEATHER.items()},
             "camera_weather": {k: asdict(v) for k, v in camera.CAMERA_WEATHER.items()},
             "bev_grid": {

@@ -44,6 +44,7 @@ _OX, _OY, _OZ, _TNEAR, _DX, _DY, _DZ, _TIME, _TFAR, _MASK, _ID, _FLAGS = range(1
 _PRIM, _GEOM, _INST = 17, 18, 19  # after Ng x, y, z (12-14), u (15), v (16)
 _FIELDS = 24  # RTCRayHit is 80 bytes (20 fields); room for a build's extra instance fields
 _PACKET = 16
+NAME = "embree"  # datagen/sensors/raycast.py RAYCASTERS
 
 
 def _library_path() -> str:

@@ -18,11 +18,20 @@ sensor ray is cast into the static scene; only the rays that can hit an agent (L
 elevation x azimuth window, ~3k of 64k rays; camera: its bounding sphere's projected rectangle)
 are cast again into the actor scene, bounded by their static hit, which costs ~0.5 ms a frame.
 bench/frame.py measures the result against bare Embree queries for the same rays.
+
+Two ray backends with one interface (`Scene`, `intersect`, `distance`, `occluded`):
+datagen/sensors/embree.py, Embree called from numba (the fast path, the default), and
+datagen/sensors/trimesh_rays.py, trimesh's own ray API on the same Embree (portable). The fast
+path loads Embree out of the embreex wheel by its Linux file name; where it cannot load,
+`ray_backend` takes trimesh's with one warning line. `--sensor raycaster=trimesh` forces it.
 """
 
 from __future__ import annotations
 
+import importlib
 import math
+import os
+import sys
 import weakref
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -31,27 +40,53 @@ from functools import cached_property
 import numba
 import numpy as np
 
-from datagen.sensors import embree
 from datagen.sensors.actors import ActorMesh, actor_mesh
 from datagen.sensors.scene import StaticScene
 from datagen.state import AgentState, FrameState, Pose
 
-QUERIES = {"intersect": embree.intersect, "distance": embree.distance, "occluded": embree.occluded}
-"""The Embree queries a FrameScene makes, by name (its ray_log records the name)."""
+RAYCASTERS = ("embree", "trimesh")  # SensorConfig.raycaster: the fast path, trimesh.ray
+_WARNED = "IIDSU_RAYCASTER_WARNED"  # set once warned, so worker processes do not repeat it
+_backends: dict[str, object] = {}
+
+
+def ray_backend(name: str = "embree"):
+    """The ray backend module `name` (RAYCASTERS). "embree" where the fast path cannot load
+    (no Embree library at the embreex wheel's Linux file name, numba unable to call it) gives
+    trimesh's instead, after one warning line on stderr (once per build: child processes
+    inherit the note that it was given)."""
+    if name not in RAYCASTERS:
+        raise ValueError(f"raycaster must be one of {RAYCASTERS}, got {name!r}")
+    if name not in _backends:
+        if name == "embree":
+            try:
+                backend = importlib.import_module("datagen.sensors.embree")
+            except Exception as e:  # OSError, ImportError, numba/llvmlite errors: any means no
+                if not os.environ.get(_WARNED):
+                    print(
+                        f"warning: the Embree fast path cannot load here ({type(e).__name__}: "
+                        f"{e}); casting rays with trimesh.ray instead (slower, the same hits)",
+                        file=sys.stderr,
+                    )
+                    os.environ[_WARNED] = "1"
+                backend = ray_backend("trimesh")
+        else:
+            backend = importlib.import_module("datagen.sensors.trimesh_rays")
+        _backends[name] = backend
+    return _backends[name]
 
 
 @dataclass
 class FrameScene:
-    """The scene of one frame: a static Embree scene (the town, committed once per process, or
-    for a very large town the tiles around the ego) and an actor scene (this frame's agents),
-    cast in turn.
+    """The scene of one frame: a static ray scene (the tiles within reach of the ego's cell,
+    committed once per process) and an actor scene (this frame's agents), cast in turn.
 
     Primitive ids are unified: 0..n_static-1 are static triangles, n_static.. actor triangles;
     `actor_of(prim)` (and the camera's shading) read their attributes without concatenating
     the static arrays with the actors' every frame.
 
     Attributes:
-        static_embree, actor_embree: committed `embree.Scene`s (actor_embree None: no agents).
+        backend: the ray backend module (`ray_backend`) both scenes belong to.
+        static_embree, actor_embree: its committed `Scene`s (actor_embree None: no agents).
         static_normals: (S, 3) float32; static_colour_rgb: (S, 3) uint8; static_material: (S,)
             uint8; static_tag: (S,) int32 lamp tags (-1 elsewhere): the static primitives'.
         actors: this frame's actor triangles (ActorMesh; its `actor` is the agent index).
@@ -60,10 +95,11 @@ class FrameScene:
         actor_boxes: (A, 6) float64 the agents' boxes: x, y (centre, m), yaw (rad), length,
             width, height (m); `actor_centres_m` and `actor_radii_m` derive their bounding
             spheres.
-        ray_log: if a list, every Embree query appends (query, scene, origins, directions,
-            tfar) to it (bench/frame.py replays them through QUERIES as bare Embree calls).
+        ray_log: if a list, every ray query appends (query, scene, origins, directions,
+            tfar) to it (bench/frame.py replays them as bare backend calls).
     """
 
+    backend: object
     static_embree: object
     actor_embree: object | None
     static_normals: np.ndarray
@@ -96,11 +132,11 @@ class FrameScene:
         return out
 
     def _run(self, query: str, scene, origins, directions, tfar):
-        """One Embree query (datagen/sensors/embree.py: intersect, distance or occluded); tfar is
-        overwritten with hit distances."""
+        """One ray query of the backend (intersect, distance or occluded); tfar is overwritten
+        with hit distances."""
         if self.ray_log is not None:
             self.ray_log.append((query, scene, origins, directions, tfar.copy()))
-        return QUERIES[query](scene, origins, directions, tfar)
+        return getattr(self.backend, query)(scene, origins, directions, tfar)
 
     def cast(
         self,
@@ -202,12 +238,14 @@ _cells: OrderedDict[tuple, tuple] = OrderedDict()
 cell_commits = 0  # how many cell scenes this process has committed (tests, bench)
 
 
-def _cell_scene(static: StaticScene, cell: tuple[int, int], radius_m: float, tiles_fn) -> tuple:
-    """(embree scene, normals, colour, material, tag) of the static tiles within `radius_m` of
-    cell `cell`'s centre, built on first use and kept per process (LRU), so every episode in a
-    worker that drives through the cell reuses it."""
+def _cell_scene(
+    static: StaticScene, cell: tuple[int, int], radius_m: float, tiles_fn, backend
+) -> tuple:
+    """(ray scene, normals, colour, material, tag) of the static tiles within `radius_m` of
+    cell `cell`'s centre, built by `backend` on first use and kept per process (LRU), so every
+    episode in a worker that drives through the cell reuses it."""
     global cell_commits
-    key = (id(static), cell, radius_m)
+    key = (id(static), cell, radius_m, backend.NAME)
     hit = _cells.get(key)
     if hit is not None and hit[0]() is static:
         _cells.move_to_end(key)
@@ -220,7 +258,7 @@ def _cell_scene(static: StaticScene, cell: tuple[int, int], radius_m: float, til
     idx = np.repeat(starts - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens)
     idx += np.arange(int(lens.sum()))
     part = (
-        embree.Scene(st.triangles_m[idx]),
+        backend.Scene(st.triangles_m[idx]),
         st.normals[idx],
         st.colour_rgb[idx],
         st.material[idx],
@@ -240,12 +278,13 @@ class SceneBuilder:
     `reach_m` (the longer of the LiDAR and camera ranges, plus the mounts' offset) of any point
     of the cell, so the sensors' reach is always covered; cell scenes are committed once per
     process and reused by later frames and episodes (`_cell_scene`). The actor scene is built
-    every frame from the agents within reach (never the ego).
+    every frame from the agents within reach (never the ego). `raycaster`: RAYCASTERS.
     """
 
-    def __init__(self, static: StaticScene, reach_m: float):
+    def __init__(self, static: StaticScene, reach_m: float, raycaster: str = "embree"):
         self.static = static
         self.reach_m = reach_m
+        self.backend = ray_backend(raycaster)
         self._centres = static.tile_centres_m()
         self._nonempty = np.diff(static.tile_start) > 0
         self._cell: tuple[int, int] | None = None
@@ -262,7 +301,7 @@ class SceneBuilder:
         cell = (math.floor(pose.x_m / CELL_M), math.floor(pose.y_m / CELL_M))
         if cell != self._cell:
             radius = self.reach_m + CELL_M / math.sqrt(2.0) + 1e-3  # centre to corner
-            self._static = _cell_scene(self.static, cell, radius, self.visible_tiles)
+            self._static = _cell_scene(self.static, cell, radius, self.visible_tiles, self.backend)
             self._cell = cell
             self.rebuilds += 1
         return self._static
@@ -284,8 +323,11 @@ class SceneBuilder:
             np.float64,
         ).reshape(-1, 6)
         return FrameScene(
+            backend=self.backend,
             static_embree=static_scene,
-            actor_embree=embree.Scene(actors.triangles_m) if len(actors.triangles_m) else None,
+            actor_embree=(
+                self.backend.Scene(actors.triangles_m) if len(actors.triangles_m) else None
+            ),
             static_normals=normals,
             static_colour_rgb=colour,
             static_material=material,
