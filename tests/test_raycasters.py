@@ -163,3 +163,10 @@ def test_sensor_raycaster_trimesh_on_the_command_line_forces_it():
     assert build.parse_sensors(["raycaster=trimesh"]).raycaster == "trimesh"
     with pytest.raises(UserError, match="raycaster must be one of"):
         build.parse_sensors(["raycaster=optix"])
+
+
+def test_drive_takes_a_model_trained_on_either_backends_data():
+    from drive.policy import check_sensor_config
+
+    trained = {"sensor_config": SensorConfig().to_dict()}
+    check_sensor_config(trained, SensorConfig(raycaster="trimesh").to_dict(), "ckpt")
