@@ -13,8 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from datagen.sensors.furniture import TRUNK_RGB
 from datagen.sensors.mesh import Material
-from datagen.sensors.scene import TRUNK_RGB, StaticScene
+from datagen.sensors.scene import StaticScene
 
 
 def boxes_overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -2,6 +2,8 @@
 
 Modules (data flows down):
     mesh.py         triangle meshes and their materials
+    polyline.py     polylines on the ground and the triangles built along them
+    furniture.py    signal heads, stop signs, buildings and trees beside the roads
     labelmap.py     the BEV label polygons kept beside the static mesh
     scene.py        the static scene of a town (mesh, label map), built once and cached
     actors.py       the road users' boxes as triangles

@@ -84,3 +84,36 @@ def triangle_normals(tris: np.ndarray) -> np.ndarray:
 def _stable_index(key: str, n: int) -> int:
     """A deterministic index in [0, n) from a string (Python's hash() is salted per process)."""
     return zlib.crc32(key.encode()) % n
+
+
+# Base colours (RGB albedo as 0..255) of the static materials.
+COLOURS = {
+    Material.ROAD: (78, 78, 82),
+    Material.MARKING: (228, 228, 222),
+    Material.SIDEWALK: (158, 154, 148),
+    Material.TERRAIN: (92, 122, 66),
+    Material.POLE: (105, 108, 112),
+    Material.SIGN: (196, 28, 28),
+    Material.LAMP: (40, 40, 40),
+}
+
+
+class MeshBuilder:
+    """Accumulates triangles with their material, colour and tag."""
+
+    def __init__(self) -> None:
+        self.tris: list[np.ndarray] = []
+        self.mat: list[np.ndarray] = []
+        self.rgb: list[np.ndarray] = []
+        self.tag: list[np.ndarray] = []
+
+    def add(self, tris: np.ndarray, material: Material, rgb=None, tag: int | np.ndarray = -1):
+        tris = np.asarray(tris, np.float64).reshape(-1, 3, 3)
+        if not len(tris):
+            return
+        n = len(tris)
+        self.tris.append(tris)
+        self.mat.append(np.full(n, int(material), np.uint8))
+        colour = COLOURS[material] if rgb is None else rgb
+        self.rgb.append(np.broadcast_to(np.asarray(colour, np.uint8), (n, 3)).copy())
+        self.tag.append(np.broadcast_to(np.asarray(tag, np.int32), (n,)).copy())
