@@ -42,7 +42,7 @@ from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests/
 
-from tests.test_training_data import write_shards  # noqa: E402
+from tests.synthetic import write_shards  # noqa: E402
 from training import data, fit  # noqa: E402
 from training.config import PRESETS  # noqa: E402
 from training.device import autocast, to_device  # noqa: E402

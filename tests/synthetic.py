@@ -1,12 +1,17 @@
-"""Small synthetic shards that satisfy the v1 contract, for tests that need no simulator."""
+"""Small synthetic shards that satisfy the contract, for tests (and bench/train.py) that need no
+simulator: `synthetic_table` (one episode's rows), `write_shards` (a dataset laid out on disk as
+`datagen build` writes it)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pyarrow as pa
+import pyarrow.parquet as pq
 
 import schemas
-from schemas import codecs
+from schemas import WEATHERS, codecs
 
 
 def synthetic_table(
@@ -77,3 +82,20 @@ def synthetic_table(
         generator_version="test", config={}, network_sha256="0" * 64, seed=seed
     )
     return pa.Table.from_pylist(rows, schema=schemas.schema(meta))
+
+
+def write_shards(
+    root: Path, towns=("alpha", "beta"), episodes: int = 2, frames: int = 4, row_group: int = 3
+) -> Path:
+    """Shards as `datagen build` lays them out: <root>/<town>/<episode_id>.parquet, with small
+    row groups so that streaming crosses row-group boundaries."""
+    k = 0
+    for town in towns:
+        (root / town).mkdir(parents=True, exist_ok=True)
+        for e in range(episodes):
+            episode = f"{town}-{k}-{e}"
+            table = synthetic_table(frames, episode, town, WEATHERS[k % 4], seed=k)
+            pq.write_table(table, root / town / f"{episode}.parquet", row_group_size=row_group)
+            k += 1
+    (root / "_manifest.json").write_text("{}")  # not data: skipped
+    return root

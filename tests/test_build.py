@@ -1,6 +1,6 @@
 """`datagen build`: planning, shards, manifest, resume, errors.
 
-The first half drives the build machinery with synthetic episodes (tests/synthetic.py) so that
+The first half drives the build machinery with synthetic episodes (tests/fakes.py) so that
 planning, resume and determinism are pinned without the simulator's cost; the second half runs
 real SUMO episodes through the `datagen` command."""
 
@@ -11,11 +11,9 @@ import signal
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
-import pyarrow as pa
 import pyarrow.dataset as ds
 import pytest
 
@@ -23,46 +21,13 @@ import schemas
 from datagen.dataset import build, executors, plan, validate
 from datagen.dataset.manifest import LOCK, MANIFEST, BuildLock
 from datagen.errors import UserError
-from tests.synthetic import synthetic_table
+from tests.fakes import FAKE_TOWNS, fake_build, fake_config, fake_runner
 
 ROOT = Path(__file__).resolve().parents[1]
-FAKE_TOWNS = (
-    plan.Town("alpha", "/nonexistent/alpha.net.xml", "a" * 64, False),
-    plan.Town("beta", "/nonexistent/beta.net.xml", "b" * 64, False),
-)
 
 
 # --------------------------------------------------------------------------------------------
 # Synthetic episodes
-
-
-@dataclass
-class FakeResult:
-    table: pa.Table
-    end_reason: str | None
-    stats: dict
-
-
-def fake_runner(spec, sensors, progress):
-    """A deterministic stand-in for run_episode: every fourth seed ends at half its frames."""
-    early = spec.seed % 4 == 0
-    rows = spec.n_frames // 2 if early else spec.n_frames
-    delay = float(os.environ.get("FAKE_FRAME_SECONDS", "0"))
-    for _ in range(rows):
-        time.sleep(delay)
-        if progress:
-            progress(1)
-    seed = spec.seed % 1000
-    # flat images: a few ms an episode, so that tests can build hundreds of them
-    table = synthetic_table(rows, spec.episode_id, spec.town, spec.weather, seed, noise=False)
-    i = table.schema.get_field_index("behaviour")
-    field = table.schema.field(i)
-    behaviour = pa.array([spec.behaviour] * rows, pa.string()).cast(field.type)
-    table = table.set_column(i, field, behaviour)
-    sha = {t.name: t.network_sha256 for t in FAKE_TOWNS}[spec.town]
-    meta = {**table.schema.metadata, schemas.META_NETWORK_HASH.encode(): sha.encode()}
-    table = table.replace_schema_metadata(meta)
-    return FakeResult(table, "route_end" if early else None, {"collisions": 0, "teleports": 0})
 
 
 def killing_runner(spec, sensors, progress, kill: str = "", marker_dir: str | None = None):
@@ -90,29 +55,6 @@ def failing_runner(spec, sensors, progress):
     if spec.episode_id == "alpha-7-0003":
         raise ValueError("the simulator fell over")
     return fake_runner(spec, sensors, progress)
-
-
-def fake_config(frames=96, seed=7, episode_seconds=8.0) -> plan.BuildConfig:
-    return plan.BuildConfig(
-        towns=FAKE_TOWNS, frames=frames, seed=seed, episode_seconds=episode_seconds, sensors={}
-    )
-
-
-def fake_build(out, workers=2, **kw):
-    return build.build(
-        fake_config(**kw), Path(out), workers=workers, runner=fake_runner, progress_bar=False
-    )
-
-
-def fake_build_main(out: str, workers: str, executor: str = "process") -> None:
-    """Entry point of the subprocess builds (kill -9, Ctrl-C, SIGTERM): the `datagen build`
-    command line itself, with the synthetic config and runner in place of SUMO's."""
-    from datagen import cli
-
-    build.config_from_args = lambda args: fake_config()
-    build.build = functools.partial(build.build, runner=fake_runner)
-    argv = ["build", "--out", out, "--workers", workers, "--executor", executor, "--no-progress"]
-    sys.exit(cli.main(argv))
 
 
 def _content(out: Path) -> dict:
@@ -287,9 +229,7 @@ def test_foreign_parquet_files_are_never_touched(tmp_path):
 
 
 def _spawn_fake_build(out: Path, env_extra: dict, executor: str = "process") -> subprocess.Popen:
-    code = (
-        "import sys; from tests.test_build import fake_build_main; fake_build_main(*sys.argv[1:])"
-    )
+    code = "import sys; from tests.fakes import fake_build_main; fake_build_main(*sys.argv[1:])"
     env = {**os.environ, **env_extra}
     return subprocess.Popen(
         [sys.executable, "-c", code, str(out), "2", executor],

@@ -11,7 +11,7 @@ import pytest
 from datagen.sensors import camera
 from datagen.sensors.raycast import SceneBuilder
 from datagen.state import Pose
-from tests.test_scene import EGO_POSE, agent_at, flat_scene, frame_at, shared_grid3
+from tests.scenes import EGO_POSE, agent_at, flat_scene, frame_at
 
 CFG = camera.CameraConfig()
 SUN = np.array([0.3, 0.5, 0.81])
@@ -149,8 +149,8 @@ def _facing_ego(st, k: int, distance_m: float) -> Pose:
 
 
 @pytest.mark.parametrize("own,slot", [("r", 0), ("y", 1), ("G", 2), ("g", 2)])
-def test_every_head_shows_its_own_lights_state_whatever_the_label(own, slot):
-    st = shared_grid3()[1]
+def test_every_head_shows_its_own_lights_state_whatever_the_label(grid3, own, slot):
+    st = grid3[1]
     k = 0
     other = "r" if own != "r" else "G"
     frame = frame_at(_facing_ego(st, k, 80.0), traffic_light="none")  # no light governs it
@@ -167,8 +167,8 @@ def test_every_head_shows_its_own_lights_state_whatever_the_label(own, slot):
     assert (lit[~same] == -1).all()  # heads of lights with no state stay dark
 
 
-def test_a_lit_head_shows_in_the_image_when_the_label_is_none():
-    st = shared_grid3()[1]
+def test_a_lit_head_shows_in_the_image_when_the_label_is_none(grid3):
+    st = grid3[1]
     k = 0
     frame = frame_at(_facing_ego(st, k, 35.0), traffic_light="none")  # beyond 30 m: "none"
     frame = dataclasses.replace(frame, signals=_signals_with(st, k, "G", "r"))
@@ -184,10 +184,10 @@ def test_a_lit_head_shows_in_the_image_when_the_label_is_none():
     assert (lit[diff][:, 1] > lit[diff][:, 0]).all()  # the changed pixels are green
 
 
-def test_real_sumo_signals_light_heads_in_view_when_the_label_is_none():
+def test_real_sumo_signals_light_heads_in_view_when_the_label_is_none(grid3):
     from datagen.world import World, WorldConfig
 
-    net, st = shared_grid3()
+    net, st = grid3
     seen_none_lit = seen_cross_differs = False
     with World(WorldConfig(net_path=net, seed=4, weather="sunny", behaviour="normal")) as world:
         for step in range(80):

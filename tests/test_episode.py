@@ -12,41 +12,29 @@ from datagen import episode
 from datagen.state import Pose
 from datagen.world.towns import network_sha256
 from schemas import codecs
-from tests.test_scene import shared_grid3
 
 N_FRAMES = 6
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    grid3_net = shared_grid3()[0]
-    import os
-
-    old = os.environ.get("IIDSU_CACHE")
-    os.environ["IIDSU_CACHE"] = str(tmp_path_factory.mktemp("cache"))
-    try:
-        spec = episode.EpisodeSpec(
-            episode_id="grid3-7-0",
-            town="grid3",
-            net_path=str(grid3_net),
-            seed=7,
-            weather="rainy",
-            behaviour="cautious",
-            n_frames=N_FRAMES,
-        )
-        progress: list[int] = []
-        result = episode.run_episode(spec, progress=progress.append)
-        again = episode.run_episode(spec)
-    finally:
-        if old is None:
-            os.environ.pop("IIDSU_CACHE")
-        else:
-            os.environ["IIDSU_CACHE"] = old
+def run(grid3, fresh_cache):
+    spec = episode.EpisodeSpec(
+        episode_id="grid3-7-0",
+        town="grid3",
+        net_path=str(grid3[0]),
+        seed=7,
+        weather="rainy",
+        behaviour="cautious",
+        n_frames=N_FRAMES,
+    )
+    progress: list[int] = []
+    result = episode.run_episode(spec, progress=progress.append)
+    again = episode.run_episode(spec)
     return spec, result, again, progress
 
 
-def test_episode_table_is_valid_and_complete(run):
-    grid3_net = shared_grid3()[0]
+def test_episode_table_is_valid_and_complete(grid3, run):
+    grid3_net = grid3[0]
     spec, result, _, progress = run
     table = result.table
     schemas.validate(table)

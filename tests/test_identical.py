@@ -22,7 +22,7 @@ import pytest
 from datagen import episode
 from datagen.dataset import shards
 from datagen.world import towns
-from tests.test_scene import build_test_network
+from tests.scenes import build_test_network
 
 # (episode_id, seed, weather, behaviour, frames): sunny exercises shadows, rainy the LiDAR
 # weather draws, the rain streaks and the wet road.
@@ -65,16 +65,8 @@ def column_sha256(path: Path) -> dict[str, str]:
 
 
 @pytest.fixture(scope="module")
-def built(tmp_path_factory):
-    old = os.environ.get("IIDSU_CACHE")
-    os.environ["IIDSU_CACHE"] = str(tmp_path_factory.mktemp("cache"))
-    try:
-        return build_small(tmp_path_factory.mktemp("data"))
-    finally:
-        if old is None:
-            os.environ.pop("IIDSU_CACHE")
-        else:
-            os.environ["IIDSU_CACHE"] = old
+def built(tmp_path_factory, fresh_cache):
+    return build_small(tmp_path_factory.mktemp("data"))
 
 
 @pytest.mark.parametrize("episode_id", sorted(EXPECTED_SHA256))

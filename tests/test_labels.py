@@ -9,14 +9,14 @@ import pyarrow as pa
 
 import schemas
 from datagen import labels
-from datagen.sensors.scene import MeshBuilder, assemble_static_scene
+from datagen.sensors.mesh import MeshBuilder
+from datagen.sensors.scene import assemble_static_scene
 from datagen.state import Pose
 from schemas import bev_pixel_centres, codecs
-from tests.test_scene import (
+from tests.scenes import (
     EGO_POSE,
     agent_at,
     frame_at,
-    shared_grid3,
 )
 
 
@@ -27,8 +27,8 @@ def _future(frame, agents_per_step, ego_poses):
     ]
 
 
-def test_drivable_lies_under_the_ego_on_a_real_lane():
-    grid3_net, grid3_scene = shared_grid3()
+def test_drivable_lies_under_the_ego_on_a_real_lane(grid3):
+    grid3_net, grid3_scene = grid3
     import sumolib
 
     net = sumolib.net.readNet(str(grid3_net))

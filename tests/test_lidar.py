@@ -8,7 +8,7 @@ from datagen.sensors import lidar
 from datagen.sensors.raycast import SceneBuilder
 from datagen.state import Pose
 from schemas import bev_pixel_centres, ego_to_bev_px
-from tests.test_scene import EGO_POSE, agent_at, flat_scene, frame_at
+from tests.scenes import EGO_POSE, agent_at, flat_scene, frame_at
 
 SUNNY = lidar.LIDAR_WEATHER["sunny"]
 

@@ -13,7 +13,7 @@ from datagen.sensors import camera, lidar, raycast, trimesh_rays
 from datagen.sensors.config import SensorConfig
 from datagen.sensors.raycast import SceneBuilder
 from datagen.state import Pose
-from tests.test_scene import agent_at, frame_at, shared_grid3
+from tests.scenes import agent_at, frame_at
 
 EGO = Pose(100.0, 95.0, 0.3)  # on the grid3 network's middle junction
 TIE_M = 1e-4  # distances agree to Embree's float32 (1.5e-5 m measured at 100 m)
@@ -26,11 +26,12 @@ def _frame():
     return frame_at(ego=EGO, agents=agents)
 
 
-def _scenes():
-    _, static = shared_grid3()
+@pytest.fixture(scope="module")
+def scenes(grid3) -> dict:
+    """The frame's scene on the grid3 town, built by each backend."""
     frame = _frame()
-    return frame, {
-        name: SceneBuilder(static, reach_m=160.0, raycaster=name).build(frame)
+    return {
+        name: SceneBuilder(grid3[1], reach_m=160.0, raycaster=name).build(frame)
         for name in raycast.RAYCASTERS
     }
 
@@ -52,8 +53,7 @@ def _same_hits(fs, dist_a, prim_a, dist_b, prim_b):
     np.testing.assert_allclose(facing, 1.0, atol=1e-5)
 
 
-def test_both_backends_give_the_same_hits_on_a_town_scene():
-    frame, scenes = _scenes()
+def test_both_backends_give_the_same_hits_on_a_town_scene(scenes):
     fast, portable = scenes["embree"], scenes["trimesh"]
     assert fast.backend.NAME == "embree" and portable.backend is trimesh_rays
     d = lidar.ray_directions(lidar.LidarConfig()).astype(np.float32)  # all round, 32 beams
@@ -79,8 +79,7 @@ def test_both_backends_give_the_same_hits_on_a_town_scene():
     np.testing.assert_array_equal(shadow, portable.occluded(ground, sun, 200.0))
 
 
-def test_both_backends_render_the_same_camera_image_and_lidar_sweep():
-    frame, scenes = _scenes()
+def test_both_backends_render_the_same_camera_image_and_lidar_sweep(scenes):
     images, sweeps = [], []
     for fs in scenes.values():
         cam = camera.Camera(camera.CameraConfig())
@@ -131,13 +130,13 @@ def test_the_default_config_records_no_raycaster_and_trimesh_is_recorded():
         SensorConfig(raycaster="optix")
 
 
-def test_a_trimesh_episode_has_the_default_episodes_labels_and_sensor_data():
+def test_a_trimesh_episode_has_the_default_episodes_labels_and_sensor_data(grid3):
     import json
 
     from datagen import episode
     from schemas import META_CONFIG_JSON, codecs
 
-    net, _ = shared_grid3()
+    net, _ = grid3
     spec = episode.EpisodeSpec("grid3-3-0", "grid3", str(net), 3, "sunny", "normal", 2)
     fast = episode.run_episode(spec).table
     portable = episode.run_episode(spec, sensors=SensorConfig(raycaster="trimesh")).table

@@ -1,138 +1,21 @@
-"""The static town mesh, its tiles and cache, actor boxes and the per-frame scene.
-
-Also holds the small fixtures the other sensor tests import: a hand-made flat scene, ego-frame
-agents and a 3x3 SUMO network with a signal, stop-controlled junctions and sidewalks.
-"""
+"""The static town mesh, its tiles and cache, actor boxes and the per-frame scene."""
 
 from __future__ import annotations
 
-import atexit
-import functools
 import math
-import shutil
-import tempfile
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from datagen.sensors import actors, raycast, scene
-from datagen.sensors.mesh import Material, boxes_triangles
+from datagen.sensors.mesh import Material
 from datagen.sensors.raycast import SceneBuilder
-from datagen.sensors.scene import MeshBuilder
-from datagen.state import AgentState, FrameState, Pose
-
-# ---------------------------------------------------------------------------- shared fixtures
-
-EGO_POSE = Pose(40.0, -20.0, 0.7)  # a non-trivial world pose: tests place things in its frame
+from datagen.state import Pose
+from tests.scenes import EGO_POSE, agent_at, flat_scene, frame_at
 
 
-def agent_at(
-    track_id: str,
-    x_m: float,
-    y_m: float,
-    yaw_rad: float = 0.0,
-    cls: str = "vehicle",
-    dims: tuple[float, float, float] = (4.5, 1.8, 1.5),
-    speed_mps: float = 0.0,
-    ego: Pose = EGO_POSE,
-) -> AgentState:
-    """An agent whose box centre is at (x_m, y_m, yaw_rad) in the frame of `ego`."""
-    wx, wy = ego.world_from_ego(np.array([[x_m, y_m]]))[0]
-    pose = Pose(float(wx), float(wy), ego.yaw_rad + yaw_rad)
-    return AgentState(track_id, cls, pose, *dims, speed_mps)
-
-
-def frame_at(
-    ego: Pose = EGO_POSE,
-    agents: tuple[AgentState, ...] = (),
-    time_s: float = 0.0,
-    speed_mps: float = 0.0,
-    traffic_light: str = "none",
-    light_distance_m: float | None = None,
-) -> FrameState:
-    ego_state = AgentState("ego", "vehicle", ego, 4.7, 1.85, 1.5, speed_mps)
-    return FrameState(
-        time_s=time_s,
-        ego=ego_state,
-        agents=tuple(agents),
-        command="follow",
-        target_point_xy_m=(
-            ego.x_m + 20 * math.cos(ego.yaw_rad),
-            ego.y_m + 20 * math.sin(ego.yaw_rad),
-        ),
-        traffic_light=traffic_light,
-        light_distance_m=light_distance_m,
-        stop_sign=False,
-        stop_distance_m=None,
-        expert_reason="none",
-    )
-
-
-def flat_scene(
-    boxes: list[tuple[tuple[float, float, float], tuple[float, float, float], float]] = (),
-    road_half_m: float = 150.0,
-) -> scene.StaticScene:
-    """A square road (z = 0, drivable in the BEV) around EGO_POSE's origin, plus static boxes
-    ((x, y, z-centre) world, (sx, sy, sz), yaw) of material POLE."""
-    b = MeshBuilder()
-    c = np.array([EGO_POSE.x_m, EGO_POSE.y_m])
-    ring = c + np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * road_half_m
-    v = np.concatenate([ring, np.zeros((4, 1))], 1)
-    b.add(np.stack([v[[0, 1, 2]], v[[0, 2, 3]]]), Material.ROAD)
-    for centre, size, yaw in boxes:
-        tris = boxes_triangles(np.array([centre]), np.array([size]), np.array([yaw]))[0]
-        b.add(tris, Material.POLE)
-    return scene.assemble_static_scene(b, [ring], [1], terrain=False)
-
-
-def build_test_network(path: Path) -> Path:
-    """A 3x3 grid, 100 m blocks: a signal in the middle, all-way and minor-road stops on the
-    west and east, two-lane east-west roads through the middle, sidewalks and crossings."""
-    from datagen.world.towns import build_plain_network
-
-    types = {(1, 1): "traffic_light", (0, 1): "allway_stop", (2, 1): "priority_stop"}
-    nodes = [
-        {"id": f"n{i}{j}", "x": 100 * i, "y": 100 * j, "type": types.get((i, j), "priority")}
-        for i in range(3)
-        for j in range(3)
-    ]
-    edges = []
-    for i in range(3):
-        for j in range(3):
-            for di, dj in ((1, 0), (0, 1)):
-                a, b = (i, j), (i + di, j + dj)
-                if b[0] > 2 or b[1] > 2:
-                    continue
-                for u, v in ((a, b), (b, a)):
-                    edges.append(
-                        {
-                            "id": f"e{u[0]}{u[1]}_{v[0]}{v[1]}",
-                            "from": f"n{u[0]}{u[1]}",
-                            "to": f"n{v[0]}{v[1]}",
-                            "numLanes": 2 if (j == 1 and dj == 0) else 1,
-                            "speed": 13.89,
-                            "priority": 3 if dj == 0 else 1,
-                        }
-                    )
-    return build_plain_network(nodes, edges, path)
-
-
-@functools.cache
-def shared_grid3() -> tuple[Path, scene.StaticScene]:
-    """The test network and its static scene, built once per test session (in a temporary
-    directory removed at exit); the sensor tests share it."""
-    tmp = Path(tempfile.mkdtemp(prefix="iidsu-grid3-"))
-    atexit.register(shutil.rmtree, tmp, True)
-    net = build_test_network(tmp / "grid3.net.xml")
-    return net, scene.build_static_scene(net)
-
-
-# ---------------------------------------------------------------------------- tests
-
-
-def test_town_mesh_has_every_static_material():
-    _, grid3_scene = shared_grid3()
+def test_town_mesh_has_every_static_material(grid3):
+    _, grid3_scene = grid3
     mats = set(np.unique(grid3_scene.material).tolist())
     for m in (
         Material.ROAD,
@@ -151,8 +34,8 @@ def test_town_mesh_has_every_static_material():
     assert lamps.min() >= 0 and lamps.max() < 3 * len(grid3_scene.head_xy_m)
 
 
-def test_buildings_stay_off_roads_and_sidewalks():
-    _, grid3_scene = shared_grid3()
+def test_buildings_stay_off_roads_and_sidewalks(grid3):
+    _, grid3_scene = grid3
     from shapely import Point, Polygon
     from shapely.strtree import STRtree
 
@@ -167,16 +50,16 @@ def test_buildings_stay_off_roads_and_sidewalks():
     assert hits.shape[1] == 0, "a building corner lies on a road, sidewalk or marking"
 
 
-def test_tiles_hold_their_triangles_within_reach():
-    st = shared_grid3()[1]
+def test_tiles_hold_their_triangles_within_reach(grid3):
+    st = grid3[1]
     centres = st.tile_centres_m()
     tile_of = np.repeat(np.arange(len(centres)), np.diff(st.tile_start))
     d = np.linalg.norm(st.triangles_m[..., :2] - centres[tile_of][:, None, :], axis=2).max(1)
     assert (d <= st.tile_reach_m[tile_of] + 1e-3).all()
 
 
-def test_culling_keeps_everything_within_the_sensors_reach():
-    st = shared_grid3()[1]
+def test_culling_keeps_everything_within_the_sensors_reach(grid3):
+    st = grid3[1]
     pose = Pose(130.0, 95.0, 0.3)
     builder = SceneBuilder(st, reach_m=60.0)
     tiles = builder.visible_tiles(np.array([pose.x_m, pose.y_m]), 60.0)
@@ -188,8 +71,8 @@ def test_culling_keeps_everything_within_the_sensors_reach():
     assert kept.sum() < st.n_triangles  # and it does cull
 
 
-def test_static_scene_is_deterministic_and_cached(tmp_path):
-    grid3_net, grid3_scene = shared_grid3()
+def test_static_scene_is_deterministic_and_cached(grid3, tmp_path):
+    grid3_net, grid3_scene = grid3
     again = scene.build_static_scene(grid3_net)
     np.testing.assert_array_equal(again.triangles_m, grid3_scene.triangles_m)
     np.testing.assert_array_equal(again.colour_rgb, grid3_scene.colour_rgb)

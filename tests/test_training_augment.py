@@ -1,6 +1,6 @@
 import numpy as np
 
-from tests.test_training_data import write_shards
+from tests.synthetic import write_shards
 from training import data
 from training.augment import zoom_out, zoom_scale
 

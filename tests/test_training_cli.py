@@ -4,7 +4,7 @@ from pathlib import Path
 import cv2
 import pytest
 
-from tests.test_training_data import write_shards
+from tests.synthetic import write_shards
 from training.cli import main
 
 

@@ -7,28 +7,11 @@ import pyarrow.parquet as pq
 import pytest
 
 import schemas
-from schemas import WEATHERS, codecs
-from tests.synthetic import synthetic_table
+from schemas import codecs
+from tests.synthetic import synthetic_table, write_shards
 from training import data
 from training.errors import UserError
 from training.targets import centres_to_objects, decode_centres, render_density, visible_boxes
-
-
-def write_shards(
-    root: Path, towns=("alpha", "beta"), episodes: int = 2, frames: int = 4, row_group: int = 3
-) -> Path:
-    """Shards as `datagen build` lays them out: <root>/<town>/<episode_id>.parquet, with small
-    row groups so that streaming crosses row-group boundaries."""
-    k = 0
-    for town in towns:
-        (root / town).mkdir(parents=True, exist_ok=True)
-        for e in range(episodes):
-            episode = f"{town}-{k}-{e}"
-            table = synthetic_table(frames, episode, town, WEATHERS[k % 4], seed=k)
-            pq.write_table(table, root / town / f"{episode}.parquet", row_group_size=row_group)
-            k += 1
-    (root / "_manifest.json").write_text("{}")  # not data: skipped
-    return root
 
 
 @pytest.fixture(scope="module")

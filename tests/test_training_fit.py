@@ -10,7 +10,6 @@ import cv2
 import pytest
 import torch
 
-from tests.test_training_data import write_shards
 from training import curves, data, fit
 from training.config import PRESETS
 from training.errors import UserError
@@ -20,8 +19,8 @@ TINY_MODEL, TINY_TRAIN = PRESETS["tiny"]
 
 
 @pytest.fixture(scope="module")
-def shards(tmp_path_factory) -> Path:
-    return write_shards(tmp_path_factory.mktemp("shards"), episodes=2, frames=4)
+def shards(synthetic_shards) -> Path:
+    return synthetic_shards  # two towns x two episodes x four frames
 
 
 def _train_cfg(shards: Path, out: Path, **changes):

@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-from tests.test_training_data import write_shards
+from tests.synthetic import write_shards
 from training import data
 from training.config import PRESETS, TrainConfig
 from training.losses import compute_losses, loss_terms

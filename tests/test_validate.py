@@ -11,7 +11,7 @@ import pytest
 import schemas
 from datagen.dataset import shards, validate
 from datagen.dataset.manifest import MANIFEST
-from tests.test_build import fake_build
+from tests.fakes import fake_build
 
 
 @pytest.fixture(scope="module")
