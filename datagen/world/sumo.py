@@ -9,6 +9,9 @@ Conversions happen here, once: SUMO's position is the front bumper of a vehicle 
 navigational (degrees, 0 = north, clockwise); readings carry the front position as SUMO gives it
 and `yaw_rad`, counter-clockwise from east (+x) in radians; `box_centre` turns a reading into a
 box-centre `Pose`.
+
+Size: ~640 lines on purpose: every libsumo call lives here (the one module with side effects on
+the simulation, ARCHITECTURE.md), so the rest of datagen/world/ stays pure.
 """
 
 from __future__ import annotations
