@@ -413,9 +413,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="FIELD=VALUE",
-        help="override a SensorConfig field (datagen/episode.py; nested: camera.crop_px=128 or "
-        'camera={"crop_px": 128}), e.g. --sensor jpeg_quality=80 (repeatable; default: the '
-        "paper's sensors)",
+        help="override a SensorConfig field (datagen/sensors/config.py; nested: camera.crop_px=128 "
+        'or camera={"crop_px": 128}), e.g. --sensor jpeg_quality=80, or --sensor '
+        "raycaster=trimesh to cast rays with trimesh.ray (portable, slower) (repeatable; "
+        "default: the paper's sensors)",
     )
     p.add_argument(
         "--force", action="store_true", help="replace an existing dataset in --out (any args)"
