@@ -156,12 +156,14 @@ def test_synthetic_build_is_readable_and_matches_its_manifest(tmp_path):
     assert "route_end" in build.summary(report)
 
 
+@pytest.mark.slow
 def test_dataset_does_not_depend_on_worker_count(tmp_path):
     fake_build(tmp_path / "one", workers=1)
     fake_build(tmp_path / "two", workers=2)
     assert _content(tmp_path / "one") == _content(tmp_path / "two")
 
 
+@pytest.mark.slow
 def test_rerun_keeps_finished_episodes_and_adopts_unrecorded_shards(tmp_path, reference):
     out = tmp_path / "out"
     fake_build(out)
@@ -181,6 +183,7 @@ def test_rerun_keeps_finished_episodes_and_adopts_unrecorded_shards(tmp_path, re
     assert _content(out) == reference
 
 
+@pytest.mark.slow
 def test_different_arguments_are_refused_unless_forced(tmp_path):
     fake_build(tmp_path)
     with pytest.raises(UserError, match=r"different arguments \(frames: 96 != 48\).*--force"):
@@ -197,6 +200,7 @@ def test_different_arguments_are_refused_unless_forced(tmp_path):
     assert len(pd.read_parquet(tmp_path, columns=["frame"])) == 48
 
 
+@pytest.mark.slow
 def test_a_failing_episode_stops_the_build_and_keeps_the_rest(tmp_path, capsys):
     with pytest.raises(UserError, match=r"episode alpha-7-0003 failed \(ValueError: the sim"):
         build.build(fake_config(), tmp_path, workers=1, runner=failing_runner, progress_bar=False)
@@ -252,6 +256,7 @@ def _wait_for_shards(out: Path, n: int, proc: subprocess.Popen, timeout_s: float
         time.sleep(0.05)
 
 
+@pytest.mark.slow
 def test_sigkill_then_rerun_equals_an_uninterrupted_build(tmp_path, reference):
     out = tmp_path / "out"
     proc = _spawn_fake_build(out, {"FAKE_FRAME_SECONDS": "0.02"})
@@ -265,6 +270,7 @@ def test_sigkill_then_rerun_equals_an_uninterrupted_build(tmp_path, reference):
     assert _content(out) == reference
 
 
+@pytest.mark.slow
 def test_ctrl_c_stops_cleanly_and_the_rerun_finishes(tmp_path, reference):
     out = tmp_path / "out"
     proc = _spawn_fake_build(out, {"FAKE_FRAME_SECONDS": "0.4"})  # 6.4 s an episode
@@ -284,6 +290,7 @@ def test_ctrl_c_stops_cleanly_and_the_rerun_finishes(tmp_path, reference):
     assert _content(out) == reference
 
 
+@pytest.mark.slow
 def test_hundreds_of_episodes_over_two_workers_complete_with_the_exact_row_count(tmp_path):
     # 2-frame episodes: the build that hung after 2 workers x 50 episodes (issue 11)
     cfg = fake_config(frames=600, episode_seconds=1.0)
@@ -298,6 +305,7 @@ def test_hundreds_of_episodes_over_two_workers_complete_with_the_exact_row_count
     assert len(report.episode_log) == episodes
 
 
+@pytest.mark.slow
 def test_a_worker_killed_mid_episode_is_retried_and_the_dataset_is_exact(
     tmp_path, capsys, reference
 ):
@@ -310,6 +318,7 @@ def test_a_worker_killed_mid_episode_is_retried_and_the_dataset_is_exact(
     assert _content(out) == reference
 
 
+@pytest.mark.slow
 def test_kill_9_of_a_worker_alone_is_retried_and_the_build_finishes_exact(tmp_path, reference):
     out = tmp_path / "out"
     proc = _spawn_fake_build(out, {"FAKE_FRAME_SECONDS": "0.1"})
@@ -335,6 +344,7 @@ def _cmdline(pid: int) -> list[str]:
         return []
 
 
+@pytest.mark.slow
 def test_a_worker_that_always_dies_stops_the_build_clearly_and_the_rerun_is_exact(
     tmp_path, reference
 ):
@@ -353,6 +363,7 @@ def test_a_worker_that_always_dies_stops_the_build_clearly_and_the_rerun_is_exac
     assert _content(out) == reference
 
 
+@pytest.mark.slow
 def test_a_stalled_episode_hits_the_watchdog_and_the_rerun_is_exact(tmp_path, reference):
     out = tmp_path / "out"
     runner = functools.partial(stalling_runner, stall="alpha-7-0002")
@@ -366,6 +377,7 @@ def test_a_stalled_episode_hits_the_watchdog_and_the_rerun_is_exact(tmp_path, re
     assert _content(out) == reference
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("executor", ["process", "ray"])
 def test_sigterm_stops_like_ctrl_c_and_the_rerun_finishes(tmp_path, executor, reference):
     if executor == "ray":
@@ -385,6 +397,7 @@ def test_sigterm_stops_like_ctrl_c_and_the_rerun_finishes(tmp_path, executor, re
     assert _content(out) == reference
 
 
+@pytest.mark.slow
 def test_ray_retries_a_killed_worker_and_equals_the_process_build(tmp_path, reference):
     pytest.importorskip("ray", reason="ray is not installed (pip install 'iidsu[ray]')")
     runner = functools.partial(killing_runner, kill="alpha-7-0003", marker_dir=str(tmp_path))
@@ -424,6 +437,7 @@ def small(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_small_build_is_read_by_pandas_pyarrow_and_validate(small):
     manifest = json.loads((small / MANIFEST).read_text())
     stats = manifest["statistics"]
@@ -446,6 +460,7 @@ def test_small_build_is_read_by_pandas_pyarrow_and_validate(small):
     assert datagen("validate", small).stdout.startswith("ok: 8 shard(s), 160 frames")
 
 
+@pytest.mark.slow
 def test_sigkill_mid_build_then_rerun_equals_the_uninterrupted_build(small, tmp_path):
     out = tmp_path / "data"
     cmd = [sys.executable, "-m", "datagen.cli", "build", *SMALL, "--workers", "2"]
@@ -468,6 +483,7 @@ def test_sigkill_mid_build_then_rerun_equals_the_uninterrupted_build(small, tmp_
     assert _content(out) == _content(small)  # byte for byte, manifest included
 
 
+@pytest.mark.slow
 def test_different_arguments_into_a_built_directory_are_refused(small):
     args = [("80" if a == "160" else a) for a in SMALL]
     proc = datagen("build", *args, "--out", small, check=False)
@@ -500,6 +516,7 @@ def test_bad_input_is_a_one_line_error(tmp_path, args, message):
     assert message in lines[0]
 
 
+@pytest.mark.slow
 def test_a_user_network_is_a_town_named_by_its_stem(tmp_path):
     import sumo
 
@@ -528,6 +545,7 @@ def test_sensor_overrides_reach_the_config():
         build.parse_sensors(["target_point=lane"])
 
 
+@pytest.mark.slow
 def test_validate_reports_a_corrupt_shard_on_one_line(small, tmp_path):
     import shutil
 
@@ -547,6 +565,7 @@ def test_validate_reports_a_corrupt_shard_on_one_line(small, tmp_path):
     )
 
 
+@pytest.mark.slow
 def test_ray_build_on_a_local_instance_equals_the_process_build(small, tmp_path):
     pytest.importorskip("ray", reason="ray is not installed (pip install 'iidsu[ray]')")
     out = tmp_path / "data"

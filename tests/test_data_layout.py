@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 import pandas as pd
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "data" / "README.md"
@@ -30,6 +31,7 @@ def _run(*args, cwd) -> subprocess.CompletedProcess:
     return proc
 
 
+@pytest.mark.slow
 def test_readme_line_reads_the_default_build_and_train_fit_reads_data(tmp_path, monkeypatch):
     (tmp_path / "data").mkdir()
     shutil.copy(README, tmp_path / "data" / "README.md")

@@ -34,6 +34,7 @@ def _numbers(doc):
     return {k: v for k, v in doc.items() if k != "timing"}
 
 
+@pytest.mark.slow
 def test_expert_scores_the_ceiling_without_collisions_or_red_lights(expert_docs):
     s = summary_doc("gs", expert_docs)
     assert s["ds"] >= 95.0, [(d["ds"], d["ended"], d["events"]) for d in expert_docs]
@@ -44,6 +45,7 @@ def test_expert_scores_the_ceiling_without_collisions_or_red_lights(expert_docs)
         assert d["ended"] == "route_complete"
 
 
+@pytest.mark.slow
 def test_same_route_and_seed_give_identical_numbers(route_file, expert_docs, tmp_path):
     _, routes = load_routes(route_file)
     again = drive_route(Task(routes[0], PolicySpec("expert"), str(tmp_path), False))
@@ -59,12 +61,14 @@ def constant_docs(route_file, tmp_path_factory):
     return [drive_route(Task(r, PolicySpec("constant"), str(out), False)) for r in routes]
 
 
+@pytest.mark.slow
 def test_constant_scores_far_below_the_expert(constant_docs, expert_docs):
     docs = constant_docs
     ds = summary_doc("gs", docs)["ds"]
     assert ds < 0.5 * summary_doc("gs", expert_docs)["ds"], [(d["ds"], d["ended"]) for d in docs]
 
 
+@pytest.mark.slow
 def test_two_workers_give_the_serial_numbers(route_file, constant_docs, tmp_path, capsys):
     out = tmp_path / "two"
     argv = ["eval", "--policy", "constant", "--routes", str(route_file), "--out", str(out)]
@@ -117,6 +121,7 @@ def test_a_checkpoint_of_other_sensors_is_refused(route_file, tmp_path, capsys):
     assert "other sensors" in msg and "lidar" in msg
 
 
+@pytest.mark.slow
 def test_a_route_file_for_another_network_is_refused(route_file, tmp_path, capsys):
     _, routes = load_routes(route_file)
     moved = tmp_path / "moved.json"
@@ -141,6 +146,7 @@ def test_a_route_file_for_another_network_is_refused(route_file, tmp_path, capsy
     assert "not a route file" in _error(capsys, argv)
 
 
+@pytest.mark.slow
 def test_drive_routes_writes_reproducible_route_sets_on_any_network(tmp_path, capsys):
     net = town_net_path("spider")
     a, b = tmp_path / "a.json", tmp_path / "b.json"

@@ -61,6 +61,7 @@ def _counts(doc):
     return {k: v for k, v in doc["counts"].items() if v}
 
 
+@pytest.mark.slow
 def test_driving_through_a_red_light_is_exactly_one_red_light_infraction(nets, tmp_path):
     def all_red():
         ls.trafficlight.setRedYellowGreenState(
@@ -124,6 +125,7 @@ def test_leaving_the_road_is_off_road_and_a_layout_collision(nets, tmp_path):
     assert doc["is"] < 0.65 + 1e-9
 
 
+@pytest.mark.slow
 def test_a_policy_that_never_moves_is_agent_blocked(nets, tmp_path):
     doc = _drive(nets["light"], tmp_path, lambda f: np.zeros((4, 2)), creep=False)
     assert _counts(doc) == {"agent_blocked": 1}, doc["events"]
@@ -138,6 +140,7 @@ def test_a_policy_that_stands_55_s_creeps_forward_on_an_empty_road(nets, tmp_pat
     assert _counts(doc) == {}
 
 
+@pytest.mark.slow
 def test_no_creep_into_a_car_parked_just_ahead(nets, tmp_path):
     def park_ahead():
         front = ls.vehicle.getLanePosition("ego")

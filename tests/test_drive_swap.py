@@ -52,6 +52,7 @@ def _brightness_planner(frame, jpeg, lidar_png, ground_png):
     return np.array([[v * t, 0.0] for t in (0.5, 1.0, 1.5, 2.0)])
 
 
+@pytest.mark.slow
 def test_the_same_traffic_is_sensed_in_both_weathers_and_plans_compared():
     net = town_net_path("grid_small")
     doc, fig = swap.weather_swap(_brightness_planner, net, 3, "normal", 6)

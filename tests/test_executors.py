@@ -42,6 +42,7 @@ def raises(x, progress):
     return x
 
 
+@pytest.mark.slow
 def test_map_returns_every_result_through_recycled_workers():
     n = 40
     with executors.make("process", square, workers=2, max_tasks_per_worker=8) as ex:
@@ -53,6 +54,7 @@ def test_map_returns_every_result_through_recycled_workers():
     assert all(d.peak_rss_mb > 0 and d.attempts == 1 for d in done)
 
 
+@pytest.mark.slow
 def test_a_killed_worker_is_detected_and_its_task_retried(tmp_path, capsys):
     (tmp_path / "never").touch()  # all but task 5 run normally
     tasks = [(str(i), (i, str(tmp_path / ("once" if i == 5 else "never")))) for i in range(8)]
@@ -88,6 +90,7 @@ def test_the_default_watchdog_is_ten_times_the_slowest_task_with_a_floor():
     ex.close()
 
 
+@pytest.mark.slow
 def test_a_raising_task_stops_the_run_with_its_traceback(capsys):
     with pytest.raises(executors.TaskFailed, match=r"task 2 failed \(ValueError: two is bad"):
         with executors.make("process", raises, workers=1) as ex:
@@ -119,6 +122,7 @@ def ray_local():
     ray.shutdown()
 
 
+@pytest.mark.slow
 def test_ray_returns_results_and_retries_a_killed_worker(ray_local, tmp_path):
     (tmp_path / "never").touch()
     tasks = [(str(i), (i, str(tmp_path / ("once" if i == 2 else "never")))) for i in range(6)]
@@ -128,6 +132,7 @@ def test_ray_returns_results_and_retries_a_killed_worker(ray_local, tmp_path):
     assert (tmp_path / "once").exists()  # task 2's first worker was killed; Ray ran it again
 
 
+@pytest.mark.slow
 def test_ray_stalled_task_hits_the_watchdog(ray_local):
     with pytest.raises(executors.Stalled, match=r"^task 3 made no progress"):
         with executors.make("ray", stalls, workers=2, stall_s=2.0) as ex:

@@ -8,6 +8,8 @@ import pytest
 
 from experiments import cli, runner
 
+pytestmark = pytest.mark.slow  # minutes of building, training or driving
+
 pytest.importorskip("torch")
 
 

@@ -26,6 +26,7 @@ def test_there_are_eight_training_towns_and_one_held_out():
     assert set(towns.RECIPES) == set(towns.ALL_TOWNS) == set(TOWN_NAMES) | {"boulevard"}
 
 
+@pytest.mark.slow
 def test_a_build_never_draws_the_held_out_town():
     from datagen.dataset.build import resolve_towns
 

@@ -7,6 +7,8 @@ import pytest
 from tests.synthetic import write_shards
 from training.cli import main
 
+pytestmark = pytest.mark.slow  # minutes of building, training or driving
+
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory) -> tuple[Path, Path]:

@@ -43,6 +43,7 @@ def test_lr_warms_up_then_decays_by_cosine():
     assert lrs[-1] == pytest.approx(0.01, abs=1e-3)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("ema_decay", [0.0, 0.5])
 def test_resume_continues_with_identical_state(shards, tmp_path, monkeypatch, ema_decay):
     # Stochastic depth on, so the restored RNG state matters. On the CPU, where runs are
@@ -92,6 +93,7 @@ def test_resume_continues_with_identical_state(shards, tmp_path, monkeypatch, em
     assert steps(whole) == steps(resumed) and len(steps(whole)) == 2
 
 
+@pytest.mark.slow
 def test_ema_is_the_checkpoints_model_and_tracks_the_trained_weights(shards, tmp_path):
     def weights(decay: float) -> tuple[dict, dict]:
         out = tmp_path / str(decay)
@@ -111,6 +113,7 @@ def test_ema_is_the_checkpoints_model_and_tracks_the_trained_weights(shards, tmp
     assert len(moved) > len(floats) // 2
 
 
+@pytest.mark.slow
 def test_ddp_runs_with_two_cpu_processes(shards, tmp_path):
     out = tmp_path / "ddp"
     command = [sys.executable, "-m", "torch.distributed.run", "--standalone"]
@@ -132,6 +135,7 @@ def test_ddp_runs_with_two_cpu_processes(shards, tmp_path):
     assert metrics["val_metrics"]["frames"] == 4
 
 
+@pytest.mark.slow
 def test_fit_logs_every_term_to_jsonl_and_tensorboard(shards, tmp_path):
     event_accumulator = pytest.importorskip(
         "tensorboard.backend.event_processing.event_accumulator"
@@ -158,6 +162,7 @@ def test_fit_logs_every_term_to_jsonl_and_tensorboard(shards, tmp_path):
     assert acc.Scalars("step/train/total")[-1].value == pytest.approx(steps[-1]["train"]["total"])
 
 
+@pytest.mark.slow
 def test_curves_draw_a_png_without_tensorboard(shards, tmp_path):
     pytest.importorskip("matplotlib")
     out = tmp_path / "run"

@@ -9,6 +9,8 @@ import pytest
 
 from training import fit
 
+pytestmark = pytest.mark.slow  # minutes of building, training or driving
+
 ROOT = Path(__file__).resolve().parents[1]
 
 

@@ -139,6 +139,7 @@ def test_fused_traffic_head_corrects_the_camera_heads_logits():
         assert torch.equal(out["traffic"], own)
 
 
+@pytest.mark.slow
 def test_traffic_residual_dropout_drops_the_correction_in_training_only():
     torch.manual_seed(0)
     image, lidar, speed, target = _inputs(64)
@@ -297,6 +298,7 @@ def _batch(tmp_path_factory, n: int) -> dict:
     return next(iter(data.make_loader(stream, n, num_workers=0)))
 
 
+@pytest.mark.slow
 def test_loss_falls_when_overfitting_a_few_frames(tmp_path_factory):
     torch.manual_seed(0)
     batch = _batch(tmp_path_factory, n=4)

@@ -171,6 +171,7 @@ def test_yields_to_pedestrian_on_crossing(nets):
         assert world.stats["collisions"] == 0
 
 
+@pytest.mark.slow
 def test_cautious_drives_slower_with_longer_gaps_than_aggressive():
     net = town_net_path("downtown")
     speed, gap = {}, {}
@@ -188,6 +189,7 @@ def test_cautious_drives_slower_with_longer_gaps_than_aggressive():
     assert gap["cautious"] > gap["aggressive"]
 
 
+@pytest.mark.slow
 def test_random_episodes_in_every_town_have_no_collision_or_red_light_violation():
     ends = []
     for i in range(20):
@@ -213,6 +215,7 @@ def test_random_episodes_in_every_town_have_no_collision_or_red_light_violation(
         ("DRT/osm.net.xml", ("tram", "bicycle")),  # an OSM import with tram tracks
     ],
 )
+@pytest.mark.slow
 def test_drives_shipped_networks_only_on_lanes_for_cars(net, forbidden):
     cfg = WorldConfig(net_path=SUMO_GAME / net, seed=3, weather="foggy", behaviour="cautious")
     with World(cfg) as world:
@@ -247,6 +250,7 @@ def test_not_a_network_is_a_clear_error_and_leaves_no_simulation_open(tmp_path):
         world.advance(1.0)
 
 
+@pytest.mark.slow
 def test_sparse_target_is_the_route_plan_ahead_and_dense_the_lane_look_ahead():
     """Same seed, both forms: the trajectories are the same (the target is only a label), the
     sparse target is a plan point ahead that changes in jumps (a point is held until reached),
@@ -270,6 +274,7 @@ def test_sparse_target_is_the_route_plan_ahead_and_dense_the_lane_look_ahead():
         World(WorldConfig(town_net_path("grid_small"), 0, "sunny", "normal", target_point="x"))
 
 
+@pytest.mark.slow
 def test_same_seed_same_trajectory():
     def run(seed):
         cfg = WorldConfig(
@@ -452,6 +457,7 @@ FORMER_COLLISIONS = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("town, seed, weather, behaviour, seconds", FORMER_COLLISIONS)
 def test_former_collision_episodes_now_drive_without_one(town, seed, weather, behaviour, seconds):
     cfg = WorldConfig(town_net_path(town), seed=seed, weather=weather, behaviour=behaviour)
