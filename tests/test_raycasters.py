@@ -156,12 +156,12 @@ def test_a_trimesh_episode_has_the_default_episodes_labels_and_sensor_data(grid3
 
 
 def test_sensor_raycaster_trimesh_on_the_command_line_forces_it():
-    from datagen.dataset import build
     from datagen.errors import UserError
+    from datagen.sensors.overrides import parse_sensors
 
-    assert build.parse_sensors(["raycaster=trimesh"]).raycaster == "trimesh"
+    assert parse_sensors(["raycaster=trimesh"]).raycaster == "trimesh"
     with pytest.raises(UserError, match="raycaster must be one of"):
-        build.parse_sensors(["raycaster=optix"])
+        parse_sensors(["raycaster=optix"])
 
 
 def test_drive_takes_a_model_trained_on_either_backends_data():

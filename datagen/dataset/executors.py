@@ -34,7 +34,7 @@ top-up rounds) uses `submit(key, payload)` and `events(timeout_s)` directly (dat
 Which task runs where and when never changes a result, so output that is a function of the
 results alone (the build's shards and manifest) is the same for any executor and worker count.
 
-Size: ~670 lines: the interface and its two implementations (local processes, Ray), whose
+Size: ~630 lines: the interface and its two implementations (local processes, Ray), whose
 failure handling must agree case by case, are read together.
 """
 
