@@ -131,7 +131,7 @@ def test_a_route_file_for_another_network_is_refused(route_file, tmp_path, capsy
     )
     net_routes = tmp_path / "net.json"
     save_routes(
-        [replace(routes[0], town=None, net_path=str(town_net_path("grid_small")))], net_routes, "n"
+        [replace(routes[0], town=None, net_name=town_net_path("grid_small").name)], net_routes, "n"
     )
     argv = ["eval", "--policy", "expert", "--routes", str(net_routes), "--net", str(other)]
     assert "another network" in _error(capsys, argv + ["--out", str(tmp_path / "o")])
@@ -155,7 +155,7 @@ def test_drive_routes_writes_reproducible_route_sets_on_any_network(tmp_path, ca
     name, routes = load_routes(a)
     assert [r.kind for r in routes] == ["short", "short", "long"]
     assert all(100 <= r.length_m <= 500 for r in routes[:2]) and 1000 <= routes[2].length_m <= 2000
-    assert routes[0].town is None and routes[0].net_path == str(net)
+    assert routes[0].town is None and routes[0].net_name == net.name
     for r in routes:  # the weather's behaviour, by the data's rule
         assert (
             r.behaviour == "cautious"

@@ -122,6 +122,9 @@ class WorldConfig:
             the next point of the sparse route plan (Sec. III-A's route goal, as TransFuser's:
             junction entries and exits and every 50 m, lane-independent), or "dense", a point
             30 m ahead along the ego's lane path (5 m into the exit lane near a junction).
+        end_on_collision: an ego collision ends the expert's episode ("collision"; the data's
+            rule). False: it drives on and the caller scores it (drive eval, as the
+            leaderboard drives on after a collision).
     """
 
     net_path: Path
@@ -136,6 +139,7 @@ class WorldConfig:
     ego_route: tuple[str, ...] | None = None
     ego_driver: str = "expert"
     target_point: str = "sparse"
+    end_on_collision: bool = True
 
 
 EGO_DRIVERS = ("expert", "external")
@@ -453,7 +457,8 @@ class World:
         # --- what happened in the step
         events = sumo.events()
         for c in self._new_collisions(events):
-            self._end("collision", f"{c.collider} hit {c.victim} ({c.kind}) on {c.lane_id}")
+            if self.config.end_on_collision:
+                self._end("collision", f"{c.collider} hit {c.victim} ({c.kind}) on {c.lane_id}")
         st.teleports += len(events.teleported)
         if EGO_ID in events.teleported:
             self._end("teleported", "SUMO teleported the jammed ego")
