@@ -238,16 +238,7 @@ def drive_route(
             k += 1
         world_end = world.ended
         world_detail = world.end_detail
-        # SUMO teleports a vehicle that has waited TELEPORT_S, a placed ego too (the world
-        # ends the drive then): standing that long is the agent blocked
-        standing = tracker.standing_s >= TELEPORT_S - 1.0
-        if tracker.ended is None and (world_end in WORLD_BLOCKED or (world_end and standing)):
-            tracker.end("agent_blocked", frame, f"{world_end}: {world_detail}")
-        elif tracker.ended is None and world_end == "route_end" and external:
-            # SUMO took the placed ego out before it completed the route: it arrived at the end
-            # of another route SUMO had mapped it to, i.e. it left the planned route
-            off = tracker.route_distance_m(frame)
-            tracker.end("route_deviation", frame, f"{world_detail} {off:.1f} m from the route")
+        judge_world_end(tracker, frame, world_end, world_detail, external)
         sim_s = frame.time_s - (tracker.start_time_s or frame.time_s)
     if recorder is not None:
         recorder.close()
@@ -283,6 +274,25 @@ def drive_route(
     }
     _write_json(Path(task.out_dir) / "routes" / f"{name}.json", doc)
     return doc
+
+
+def judge_world_end(tracker, frame, world_end: str | None, detail: str, external: bool) -> None:
+    """Score a drive the world ended before the tracker did (`frame`: the last state).
+
+    SUMO teleports a vehicle that has waited TELEPORT_S, a placed ego too (the world ends the
+    drive then): standing that long is the agent blocked. SUMO taking a placed ego out away
+    from its route's lanes (it had mapped the ego to another road) is a route deviation, however
+    close to the route that was (the leaderboard's InRouteTest would have seen it leave)."""
+    if tracker.ended is not None or world_end is None:
+        return
+    standing = tracker.standing_s >= TELEPORT_S - 1.0
+    if world_end in WORLD_BLOCKED or standing:
+        tracker.end("agent_blocked", frame, f"{world_end}: {detail}")
+    elif world_end == "route_end" and external and not tracker.complete:
+        p = frame.ego.pose
+        if not tracker.geometry.in_lanes(p.x_m, p.y_m):
+            off = tracker.route_distance_m(frame)
+            tracker.end("route_deviation", frame, f"{detail}, {off:.1f} m from the route")
 
 
 def _placed(frame, vehicle: VehicleState):
