@@ -33,8 +33,8 @@ Per type:
 
 Route completion (RouteCompletionTest): progress is the front's projection on the route's
 centreline, searched from PROGRESS_BACK_M behind to PROGRESS_AHEAD_M ahead of the progress so
-far (the leaderboard checks two waypoints ahead) and growing at most as fast as the front
-moves, so a shortcut across a block earns nothing; the route is complete once progress is over
+far (the leaderboard checks two waypoints ahead) and growing at most 1.5 times as fast as the
+front moves (PROGRESS_GAIN), so a shortcut across a block earns nothing; the route is complete once progress is over
 score.COMPLETE_PCT and the front within score.END_DISTANCE_M of the route's end.
 
 Beyond the leaderboard: `min_ttc_s`, the smallest time to collision with any vehicle or person
@@ -67,8 +67,11 @@ from drive.score import (
 STOP_ZONE_M = 5.0  # a stop counts within this distance before a stop sign's line
 RED_STATES = "ru"  # SUMO link states that mean red (red, red-yellow)
 PROGRESS_BACK_M = 10.0  # progress is searched this far behind the progress so far ...
-PROGRESS_AHEAD_M = 5.0  # ... and this far ahead of it (RouteCompletionTest: two 1 m waypoints,
-# plus one 0.1 s step at 25 m/s)
+PROGRESS_AHEAD_M = 15.0  # ... and this far ahead of it. RouteCompletionTest looks two 1 m
+# waypoints ahead; our centreline steps sideways by up to three lanes where the lane a
+# junction passage enters is not the lane of the next connection (drive/geometry.py; a 6.4 m
+# step on boulevard-long-09 stopped the progress with a 5 m window), and the cap below, not the
+# window, keeps a shortcut from earning progress
 PROGRESS_GAIN = (1.5, 0.1)  # per step at most 1.5 x the front's movement + 0.1 m (a bend's
 # centreline can be longer than the front's path on another lane)
 START_SEARCH_M = 40.0  # where the first state's front may be along the route

@@ -443,7 +443,8 @@ def test_completion_needs_the_front_within_10_m_of_the_end():
 def test_a_shortcut_earns_no_progress_faster_than_the_front_moves():
     geom = _straight_route()
     # 40 m along, the ego jumps 25 m ahead along the route (a shortcut through a block): the
-    # search reaches only 5 m ahead of the progress so far, so the jump earns 5 m
+    # search reaches 15 m ahead of the progress so far, the jump earns 15 m; standing there,
+    # progress creeps no further than the front moves (0 here) plus 0.1 m a step
     xs = [10.0 + k for k in range(30)] + [65.0 + k for k in range(5)]
     frames = [_frame(k * 0.1, x) for k, x in enumerate(xs)]
     t = InfractionTracker(geom, _layout())
@@ -451,11 +452,31 @@ def test_a_shortcut_earns_no_progress_faster_than_the_front_moves():
         t.step(f)
     before = t.progress_m
     t.step(frames[30])
-    assert t.progress_m == pytest.approx(before + 5.0)
-    # standing far ahead, progress creeps no further than the front moves (0 here)
+    assert t.progress_m == pytest.approx(before + 15.0)
     for k in range(5):
         t.step(_frame((31 + k) * 0.1, 65.0, speed=0.0))
-    assert t.progress_m == pytest.approx(before + 5.0 + 0.1 * 5)
+    assert t.progress_m == pytest.approx(before + 15.0 + 0.1 * 5)
+    # a long hop earns no more than 1.5 x the front's movement: 50 m ahead along the route
+    t = InfractionTracker(geom, _layout())
+    for f in frames[:30]:
+        t.step(f)
+    before = t.progress_m
+    t.step(_frame(3.0, 39.0 + 8.0))  # the front moved 8 m: at most 12.1 m of progress
+    assert t.progress_m == pytest.approx(before + 8.0)  # on the route, it earns what it drove
+
+
+def test_progress_follows_a_lane_past_a_sideways_step_of_the_centreline():
+    """The centreline steps 6.4 m sideways where the lane a junction passage enters is not the
+    one the next connection leaves from (boulevard-long-09 at E3E4); the ego driving on in its
+    own lane keeps gaining progress and completes the route."""
+    pts = np.array([[0.0, 0.0], [100.0, 0.0], [100.0, 6.4], [300.0, 6.4]])
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pts, axis=0).T))])
+    lane = shapely.LineString(pts).buffer(1.6, cap_style=2)
+    geom = RouteGeometry(("e",), pts, s, (), lane, 0)
+    road = Layout([shapely.box(-50, -20, 350, 30)], [], [])
+    frames = [_frame(k * 0.1, 2.35 + k) for k in range(320)]  # along y = 0 all the way
+    t = _drive(InfractionTracker(geom, road), frames)
+    assert t.ended == "route_complete" and "route_deviation" not in t.counts()
 
 
 def test_collisions_are_debounced_as_the_leaderboard_does():
