@@ -263,6 +263,7 @@ class Sumo:
         self.net = Network(libsumo)
         self.TraCIException = libsumo.TraCIException
         self._ego_regards_decel = True  # the ego's speed mode is 31 (SUMO's default)
+        self._ego_strategic_only = False  # its lane-change mode is 1621 (SUMO's default)
 
     # ------------------------------------------------------------------ network
 
@@ -370,6 +371,7 @@ class Sumo:
         (at most 50 steps); False, and nothing left behind, if SUMO could not insert it."""
         ls = self._ls
         self._ego_regards_decel = True  # a new vehicle starts with speed mode 31
+        self._ego_strategic_only = False  # ... and lane-change mode 1621
         ls.route.add(f"r_ego{attempt}", route)
         ls.vehicle.add(
             EGO_ID,
@@ -473,6 +475,16 @@ class Sumo:
             self._ls.vehicle.setSpeedMode(EGO_ID, 31 if regard_decel else 27)
             self._ego_regards_decel = regard_decel
         self._ls.vehicle.setSpeed(EGO_ID, speed_mps)
+
+    def set_ego_lane_changes(self, strategic_only: bool) -> None:
+        """SUMO's default lane-change mode (1621), or only the changes the route needs (1537:
+        strategic, respecting others; no cooperative, speed-gain or keep-right change). A
+        continuous lane change at standstill turns the standing car's box up to ~40 degrees
+        and leaves it so (SUMO's angle follows movement), its rear in the next lane: a SUMO
+        car there drove into it (boulevard-long-04, "v18", drive eval of issue 38)."""
+        if strategic_only != self._ego_strategic_only:
+            self._ls.vehicle.setLaneChangeMode(EGO_ID, 1537 if strategic_only else 1621)
+            self._ego_strategic_only = strategic_only
 
     def take_over_ego(self) -> None:
         """An external controller drives from now on: SUMO applies speeds as given (speed mode 0)

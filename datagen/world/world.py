@@ -95,6 +95,7 @@ STOP_FOE_CHECK_M = 10.0  # within this of a stop line the expert reads its junct
 # record() drops the frames of the last 5 s before an ego collision: more than the 2 s of future
 # waypoints a frame is labelled with plus ~3 s of approach, so no frame shows driving into it.
 COLLISION_DROP_S = 5.0
+SLOW_LANE_CHANGE_MPS = 1.0  # slower than this the expert ego changes lanes only for its route
 
 _log = logging.getLogger(__name__)
 _open_world: World | None = None  # libsumo runs one simulation per process
@@ -444,6 +445,8 @@ class World:
         inp = self._expert_input()
         dec = expert.decide(inp, p, EGO_DECEL_SLACK * p.ego_comfort_decel_mps2)
         self._target, reason = dec.target_speed_mps, dec.reason
+        # no lane change but the route's while (nearly) standing (sumo.set_ego_lane_changes)
+        sumo.set_ego_lane_changes(strategic_only=v0 < SLOW_LANE_CHANGE_MPS)
         if dec.brake_mps2 > 0.0:  # an emergency: brake harder than the vType's decel
             v_cmd = max(dec.target_speed_mps, v0 - dec.brake_mps2 * dt)
             sumo.set_ego_speed(v_cmd, regard_decel=False)
