@@ -187,6 +187,10 @@ class Roads:
     walk_len: np.ndarray
 
 
+FOE_CLEARANCE_M = 2.0  # a foe passage closer than this to the ego's path conflicts with it
+# (half the ego's width, 0.93 m, plus half a car's and a margin)
+
+
 class Network:
     """Static lane queries, cached (implements route.RoadNet)."""
 
@@ -197,6 +201,37 @@ class Network:
         self._allowed: dict[str, tuple[str, ...]] = {}
         self._to_junction: dict[str, str] = {}
         self._stop_controlled: dict[str, bool] = {}
+        self._foes: dict[str, frozenset[str]] = {}
+
+    def internal_foes(self, via_lane_id: str) -> frozenset[str]:
+        """The internal lanes whose passages really conflict with the passage starting at
+        internal lane `via_lane_id`: SUMO's internal foes (getInternalFoes of it and of the
+        internal lanes that follow it) whose shape comes within FOE_CLEARANCE_M of the
+        passage's shape, or that end on the lane the passage ends on. SUMO also lists passages
+        into the other lanes of the road a right turn enters, which it never crosses."""
+        foes = self._foes.get(via_lane_id)
+        if foes is None:
+            from shapely import LineString, unary_union
+
+            ls, lane, found, chain = self._ls, via_lane_id, set(), []
+            for _ in range(4):
+                found.update(ls.lane.getInternalFoes(lane))
+                chain.append(lane)
+                nxt = [k[0] for k in ls.lane.getLinks(lane)]
+                if not nxt or not nxt[0].startswith(":"):
+                    break
+                lane = nxt[0]
+            own_end = nxt[0] if nxt else ""
+            path = unary_union([LineString(ls.lane.getShape(x)) for x in chain])
+            path = path.buffer(FOE_CLEARANCE_M)
+            keep = set()
+            for f in found:
+                ends = {k[0] for k in ls.lane.getLinks(f)}
+                shape = ls.lane.getShape(f)
+                if own_end in ends or (len(shape) > 1 and path.intersects(LineString(shape))):
+                    keep.add(f)
+            foes = self._foes[via_lane_id] = frozenset(keep)
+        return foes
 
     def lane(self, lane_id: str) -> Lane:
         lane = self._lanes.get(lane_id)

@@ -373,8 +373,10 @@ class World:
         stop_foe = None
         stop_d = sig.stop_distance_m
         if stop_d is not None and sig.stop_junction and stop_d < STOP_FOE_CHECK_M:
+            via = next((k.via_lane_id for k in self._snap.links if k.state in ("s", "w")), "")
+            foes = self._net.internal_foes(via) if via else None  # only conflicting passages
             stop_foe = perception.foe_eta_s(
-                self._snap.agents, self._net, sig.stop_junction, ego.road_id
+                self._snap.agents, self._net, sig.stop_junction, ego.road_id, foes=foes
             )
         green_left = None
         b = self.profile.ego_comfort_decel_mps2  # from where it can still stop comfortably
