@@ -478,17 +478,22 @@ def foe_eta_s(
 
 
 def junction_clear(
-    agents: Sequence[AgentReading], junction: str | None, kerb: Callable[[str], bool]
+    agents: Sequence[AgentReading],
+    junction: str | None,
+    kerb: Callable[[str], bool],
+    foes: frozenset[str] | None = None,
 ) -> bool:
-    """No other vehicle is inside `junction` (on its internal lanes); people on its crossings
-    and walking areas are left to the pedestrian rule and SUMO. True without a junction."""
+    """No other vehicle is inside `junction` (on its internal lanes; with `foes`, on one of
+    those: Network.internal_foes of the ego's passage); people on its crossings and walking
+    areas are left to the pedestrian rule and SUMO. True without a junction."""
     if junction is None:
         return True
     prefix = f":{junction}_"
     for a in agents:
         lane = a.lane_id
         if lane.startswith(prefix) and not kerb(lane) and not is_crossing(lane):
-            return False
+            if foes is None or lane in foes:
+                return False
     return True
 
 

@@ -373,10 +373,8 @@ class World:
         stop_foe = None
         stop_d = sig.stop_distance_m
         if stop_d is not None and sig.stop_junction and stop_d < STOP_FOE_CHECK_M:
-            via = next((k.via_lane_id for k in self._snap.links if k.state in ("s", "w")), "")
-            foes = self._net.internal_foes(via) if via else None  # only conflicting passages
             stop_foe = perception.foe_eta_s(
-                self._snap.agents, self._net, sig.stop_junction, ego.road_id, foes=foes
+                self._snap.agents, self._net, sig.stop_junction, ego.road_id, foes=self._stop_foes()
             )
         green_left = None
         b = self.profile.ego_comfort_decel_mps2  # from where it can still stop comfortably
@@ -401,6 +399,12 @@ class World:
             green_left_s=green_left,
             stop_foe_eta_s=stop_foe,
         )
+
+    def _stop_foes(self) -> frozenset[str] | None:
+        """Internal lanes of passages that conflict with the ego's through its next stop sign
+        (sumo.Network.internal_foes); None without one."""
+        via = next((k.via_lane_id for k in self._snap.links if k.state in ("s", "w")), "")
+        return self._net.internal_foes(via) if via else None
 
     def _set_route(self, edges: list[str] | tuple[str, ...]) -> None:
         """Cache the ego's route and the length of each of its suffixes."""
@@ -489,7 +493,7 @@ class World:
         ):
             self._stop_wait_s += dt
             if self._stop_wait_s >= expert.STOP_WAIT_S and perception.junction_clear(
-                snap.agents, self._signals.stop_junction, self._is_kerb
+                snap.agents, self._signals.stop_junction, self._is_kerb, self._stop_foes()
             ):
                 self._stop_done_lane = lane1
         else:
