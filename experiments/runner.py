@@ -131,7 +131,7 @@ def seen_routes(p: Preset):
     """The seen-town routes of preset `p`: training_towns.json's routes in the towns of its
     build but not its val_town (held out of training), taken in turn from each town so that
     several towns are covered, `p.seen_routes` of them (0: all)."""
-    from datagen.towns import TOWN_NAMES
+    from datagen.world.towns import TOWN_NAMES
     from drive.routes import load_routes
 
     _, routes = load_routes(ROUTES / "training_towns.json")

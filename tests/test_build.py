@@ -563,7 +563,7 @@ def test_the_held_out_town_is_refused_under_any_name(tmp_path):
     import gzip
     import shutil
 
-    from datagen.towns import HELD_OUT_TOWNS, town_net_path
+    from datagen.world.towns import HELD_OUT_TOWNS, town_net_path
 
     cached = town_net_path(HELD_OUT_TOWNS[0])
     copy = tmp_path / "my_city.net.xml"

@@ -237,7 +237,7 @@ def test_a_policy_that_stops_20_m_short_of_the_end_does_not_complete(nets, tmp_p
 
 def test_two_wheels_on_the_kerb_are_a_layout_infraction(nets, tmp_path):
     """Issue 38 item 4: the box centre stays on the road, the right wheels on the sidewalk."""
-    from datagen.scene import load_static_scene
+    from datagen.sensors.scene import load_static_scene
     from drive.layout import Layout
 
     doc = _drive(nets["light"], tmp_path, _toward(-3.0), max_sim_s=14.0)
@@ -298,7 +298,7 @@ def test_sumo_taking_out_an_ego_off_its_route_is_a_route_deviation(nets, tmp_pat
     tracker on the real route is handed the world's end as drive_route hands it."""
     from dataclasses import replace
 
-    from datagen.scene import load_static_scene
+    from datagen.sensors.scene import load_static_scene
     from datagen.state import AgentState, FrameState, Pose
     from drive.evaluate import judge_world_end
     from drive.geometry import route_geometry

@@ -9,8 +9,8 @@ import libsumo as ls
 import numpy as np
 import pytest
 
-from datagen.towns import build_plain_network
 from datagen.world import World, WorldConfig
+from datagen.world.towns import build_plain_network
 from datagen.world.traffic import edges_near
 
 
