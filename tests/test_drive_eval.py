@@ -4,6 +4,7 @@ lower, results are reproducible, and bad input is one clear line with a non-zero
 import json
 from dataclasses import replace
 
+import numpy as np
 import pytest
 
 from datagen.world.towns import build_plain_network, town_net_path
@@ -179,3 +180,73 @@ def test_standard_benchmarks_are_checked_in_and_cover_what_they_promise():
         _, rs = load_routes(ROUTES_DIR / f"{name}.json")
         assert len(rs) == 10 and {r.town for r in rs} == set(HELD_OUT_TOWNS)
         assert all(r.kind == kind and lo <= r.length_m <= hi for r in rs)
+
+
+def test_a_route_the_ego_cannot_start_is_found_when_generated(tmp_path):
+    """Issue 38 item 8: `undrivable` inserts the ego as a build does; routes failing it are
+    not written (drive.routes._pick_route)."""
+    from drive.routes import undrivable
+
+    net = town_net_path("grid_small")
+    _, routes = load_routes(_gs_routes(tmp_path))
+    assert undrivable(net, routes[0].edges) is None
+    # the same edges backwards do not connect: SUMO refuses to start the ego on them
+    why = undrivable(net, tuple(reversed(routes[0].edges)))
+    assert why is not None and why.split(":")[0] in ("TraCIException", "RuntimeError"), why
+
+
+def _gs_routes(tmp_path):
+    path = tmp_path / "gs2.json"
+    save_routes(generate(town_net_path("grid_small"), 2, 0, 0, "gs", "grid_small"), path, "gs")
+    return path
+
+
+def test_a_failing_route_is_recorded_the_others_go_on_and_a_rerun_resumes(tmp_path, capsys):
+    """Issue 38 item 8: a route whose drive fails is recorded with its reason (DS 0) and does
+    not stop the benchmark; the same command again keeps the finished route and retries the
+    failed one; another policy in the same directory is refused."""
+    _, routes = load_routes(_gs_routes(tmp_path))
+    broken = replace(routes[1], route_id="broken", edges=tuple(reversed(routes[1].edges)))
+    path = tmp_path / "mixed.json"
+    save_routes([routes[0], broken], path, "mixed")
+    out = tmp_path / "o"
+    argv = ["eval", "--policy", "constant", "--routes", str(path), "--out", str(out)]
+    assert cli.main(argv) == 0
+    text = capsys.readouterr().out
+    assert "FAILED broken (scored DS 0):" in text and "do not connect" in text
+    good = json.loads((out / "routes" / f"{routes[0].route_id}.json").read_text())
+    bad = json.loads((out / "routes" / "broken.json").read_text())
+    assert bad["failure"] and bad["ds"] == 0.0 and not good.get("failure")
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["n_routes"] == 2 and summary["n_failed"] == 1
+    assert summary["ds"] == pytest.approx(good["ds"] / 2)
+    mtime = (out / "routes" / f"{routes[0].route_id}.json").stat().st_mtime_ns
+    assert cli.main(argv) == 0
+    assert "keeping 1 finished route(s), driving 1" in capsys.readouterr().out
+    assert (out / "routes" / f"{routes[0].route_id}.json").stat().st_mtime_ns == mtime
+    msg = _error(capsys, ["eval", "--policy", "expert", "--routes", str(path), "--out", str(out)])
+    assert "driven by another policy" in msg
+
+
+def test_repetitions_drive_each_route_with_its_own_seed_and_average_per_route(tmp_path):
+    """Issue 38 item 9: repetition 0 is the route's own seed (the single run's numbers),
+    repetition r a seed drawn from (route seed, r); the summary's unit is the route."""
+    from drive.evaluate import repetition_seed
+
+    _, routes = load_routes(_gs_routes(tmp_path))
+    path = tmp_path / "one.json"
+    save_routes(routes[:1], path, "one")
+    out = tmp_path / "reps"
+    argv = ["eval", "--policy", "constant", "--routes", str(path), "--out", str(out)]
+    assert cli.main(argv + ["--repetitions", "3", "--max-sim-s", "20"]) == 0
+    rid = routes[0].route_id
+    docs = [json.loads((out / "routes" / f"{n}.json").read_text())
+            for n in (rid, f"{rid}_rep1", f"{rid}_rep2")]  # fmt: skip
+    assert [d["repetition"] for d in docs] == [0, 1, 2]
+    assert docs[0]["seed"] == routes[0].seed
+    assert {d["seed"] for d in docs} == {repetition_seed(routes[0].seed, r) for r in range(3)}
+    assert len({d["seed"] for d in docs}) == 3
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["n_routes"] == 1 and summary["n_drives"] == 3 and summary["ds_ci"] == 0.0
+    assert summary["ds"] == pytest.approx(np.mean([d["ds"] for d in docs]))
+    assert repetition_seed(7, 1) == repetition_seed(7, 1) != repetition_seed(7, 2)
