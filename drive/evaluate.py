@@ -509,8 +509,12 @@ def run(args) -> int:
     name, routes = load_routes(args.routes)
     if args.limit:
         routes = routes[: args.limit]
-    for r in {(r.town, r.net_name, r.network_sha256): r for r in routes}.values():
-        resolve_net(r, args.net, Path(args.routes))  # a file for another network fails first
+    # each network resolved once, here (a file for another network fails before any driving);
+    # a user network's path travels with the tasks (workers have no route file to look beside)
+    nets = {
+        key: resolve_net(r, args.net, Path(args.routes))
+        for key, r in {(r.town, r.net_name, r.network_sha256): r for r in routes}.items()
+    }
     if spec.kind == "ckpt":  # a sensor mismatch fails before any driving, too
         from datagen.sensors.config import SensorConfig
         from drive.policy import check_sensor_config
@@ -527,14 +531,13 @@ def run(args) -> int:
             raise UserError(f"--baseline {args.baseline}: no routes/*.json results in it")
     out = Path(args.out)
     key = run_key(spec, args)
-    net = str(resolve_net(routes[0], args.net, Path(args.routes))) if args.net else None
     tasks = [
         Task(
             r,
             spec,
             str(out),
             i < args.record and rep == 0,
-            net,
+            None if r.town and not args.net else str(nets[(r.town, r.net_name, r.network_sha256)]),
             max_sim,
             creep=not args.no_creep,
             repetition=rep,

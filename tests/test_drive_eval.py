@@ -2,6 +2,7 @@
 lower, results are reproducible, and bad input is one clear line with a non-zero exit."""
 
 import json
+import shutil
 from dataclasses import replace
 
 import numpy as np
@@ -157,6 +158,17 @@ def test_drive_routes_writes_reproducible_route_sets_on_any_network(tmp_path, ca
     assert [r.kind for r in routes] == ["short", "short", "long"]
     assert all(100 <= r.length_m <= 500 for r in routes[:2]) and 1000 <= routes[2].length_m <= 2000
     assert routes[0].town is None and routes[0].net_name == net.name
+    # portable: no path of this machine in the file; moved beside its network, it drives
+    assert str(net.parent) not in a.read_text()
+    moved = tmp_path / "elsewhere"
+    moved.mkdir()
+    shutil.copyfile(net, moved / net.name)
+    shutil.copyfile(a, moved / "routes.json")
+    argv = ["eval", "--policy", "constant", "--routes", str(moved / "routes.json")]
+    argv += ["--out", str(tmp_path / "o"), "--limit", "1", "--max-sim-s", "3"]
+    assert cli.main(argv) == 0
+    (moved / net.name).unlink()
+    assert "give it with --net" in _error(capsys, argv[:4] + ["--out", str(tmp_path / "o2")])
     for r in routes:  # the weather's behaviour, by the data's rule
         assert (
             r.behaviour == "cautious"
