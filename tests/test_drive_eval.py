@@ -167,8 +167,9 @@ def test_drive_routes_writes_reproducible_route_sets_on_any_network(tmp_path, ca
     argv = ["eval", "--policy", "constant", "--routes", str(moved / "routes.json")]
     argv += ["--out", str(tmp_path / "o"), "--limit", "1", "--max-sim-s", "3"]
     assert cli.main(argv) == 0
+    capsys.readouterr()
     (moved / net.name).unlink()
-    assert "give it with --net" in _error(capsys, argv[:4] + ["--out", str(tmp_path / "o2")])
+    assert "give it with --net" in _error(capsys, argv[:5] + ["--out", str(tmp_path / "o2")])
     for r in routes:  # the weather's behaviour, by the data's rule
         assert (
             r.behaviour == "cautious"
@@ -199,12 +200,16 @@ def test_a_route_the_ego_cannot_start_is_found_when_generated(tmp_path):
     not written (drive.routes._pick_route)."""
     from drive.routes import undrivable
 
-    net = town_net_path("grid_small")
-    _, routes = load_routes(_gs_routes(tmp_path))
-    assert undrivable(net, routes[0].edges) is None
-    # the same edges backwards do not connect: SUMO refuses to start the ego on them
-    why = undrivable(net, tuple(reversed(routes[0].edges)))
-    assert why is not None and why.split(":")[0] in ("TraCIException", "RuntimeError"), why
+    nodes = [dict(id="A", x=0, y=0), dict(id="B", x=100, y=0), dict(id="C", x=200, y=0)]
+    edges = [
+        {"id": "AB", "from": "A", "to": "B", "numLanes": 1, "speed": 13.89, "allow": "bicycle"},
+        {"id": "BC", "from": "B", "to": "C", "numLanes": 1, "speed": 13.89},
+    ]
+    net = build_plain_network(nodes, edges, tmp_path / "bike.net.xml")
+    assert undrivable(net, ("BC",)) is None
+    # a first edge only bicycles may use: SUMO cannot start the ego there
+    why = undrivable(net, ("AB", "BC"))
+    assert why  # the reason, whatever SUMO or the world raised
 
 
 def _gs_routes(tmp_path):
@@ -231,10 +236,10 @@ def test_a_failing_route_is_recorded_the_others_go_on_and_a_rerun_resumes(tmp_pa
     assert bad["failure"] and bad["ds"] == 0.0 and not good.get("failure")
     summary = json.loads((out / "summary.json").read_text())
     assert summary["n_routes"] == 2 and summary["n_failed"] == 1
-    assert summary["ds"] == pytest.approx(good["ds"] / 2)
+    assert summary["ds"] == pytest.approx(good["ds"] / 2, rel=1e-4)
     mtime = (out / "routes" / f"{routes[0].route_id}.json").stat().st_mtime_ns
     assert cli.main(argv) == 0
-    assert "keeping 1 finished route(s), driving 1" in capsys.readouterr().out
+    assert "keeping 1 finished route result(s), driving 1" in capsys.readouterr().out
     assert (out / "routes" / f"{routes[0].route_id}.json").stat().st_mtime_ns == mtime
     msg = _error(capsys, ["eval", "--policy", "expert", "--routes", str(path), "--out", str(out)])
     assert "driven by another policy" in msg
@@ -260,5 +265,5 @@ def test_repetitions_drive_each_route_with_its_own_seed_and_average_per_route(tm
     assert len({d["seed"] for d in docs}) == 3
     summary = json.loads((out / "summary.json").read_text())
     assert summary["n_routes"] == 1 and summary["n_drives"] == 3 and summary["ds_ci"] == 0.0
-    assert summary["ds"] == pytest.approx(np.mean([d["ds"] for d in docs]))
+    assert summary["ds"] == pytest.approx(np.mean([d["ds"] for d in docs]), rel=1e-4)
     assert repetition_seed(7, 1) == repetition_seed(7, 1) != repetition_seed(7, 2)
