@@ -19,7 +19,8 @@ Per type:
   driven so, `off_route_share` (the IS factor) the share with the box centre outside the route's
   lanes (OutsideRouteLanesTest).
 - red_light (RunningRedLightTest): the ego's front bumper (either corner or its middle) crosses
-  a signalised stop line of the route, in the direction of travel, while the signal links
+  a signalised stop line of the route (gets more than CROSS_M past it), in the direction of
+  travel, while the signal links
   governing the lane segment it crosses were red in the step before. The line's own signal is
   read, wherever the ego is (off its lane, off the network).
 - stop_sign (RunningStopTest): the front crosses a stop-controlled line without having been
@@ -65,6 +66,8 @@ from drive.score import (
 )
 
 STOP_ZONE_M = 5.0  # a stop counts within this distance before a stop sign's line
+CROSS_M = 0.1  # a line is crossed when the front gets more than this past it: SUMO stops a car
+# at the end of its lane with its front exactly on the line (boulevard-long-03 at C5)
 RED_STATES = "ru"  # SUMO link states that mean red (red, red-yellow)
 PROGRESS_BACK_M = 10.0  # progress is searched this far behind the progress so far ...
 PROGRESS_AHEAD_M = 15.0  # ... and this far ahead of it. RouteCompletionTest looks two 1 m
@@ -399,7 +402,7 @@ class InfractionTracker:
             if line.kind == "stop" and _in_zone(line, mid):
                 self._zone_min_speed[k] = min(self._zone_min_speed.get(k, math.inf), speed)
             u = line.direction if line.direction is not None else _across(line)
-            hit = crossed(front0, front1, line.segments(), u)
+            hit = crossed(front0, front1, line.segments() + CROSS_M * u, u)
             if not hit.any():
                 continue
             self._lines_done.add(k)

@@ -536,3 +536,17 @@ def test_a_failed_route_scores_zero_and_a_route_that_drove_nothing_has_no_rate()
     # the stuck route drove 0 km: no rate (the leaderboard skips it), not 1000 per km
     assert s.per_km["collision_vehicle"] == pytest.approx(2.0)
     assert failed.ds == 0.0 and failed.rc == 0.0 and failed.infraction_score == 1.0
+
+
+def test_a_front_stopping_on_the_line_has_not_crossed_it():
+    """boulevard-long-03 at C5: SUMO stopped the expert with its front exactly on the stop line
+    as the light turned red; 0.1 m past it is a crossing."""
+    geom = _straight_route(lights=(100.0,))
+    on_line = 100.0 - 2.35
+    xs = [min(10.0 + k, on_line) for k in range(120)]
+    frames = [
+        _frame(k * 0.1, x, speed=0.0 if x == on_line else 10.0, sig="r") for k, x in enumerate(xs)
+    ]
+    assert _drive(InfractionTracker(geom, _layout()), frames).counts() == {}
+    over = [_frame(k * 0.1, min(10.0 + k, on_line + 0.2), sig="r") for k in range(120)]
+    assert _drive(InfractionTracker(geom, _layout()), over).counts() == {"red_light": 1}
