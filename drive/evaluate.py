@@ -56,6 +56,7 @@ from drive.controller import (
 )
 from drive.policy import PolicySpec, constant_waypoints
 from drive.routes import Route, resolve_net
+from schemas import outputs
 
 CREEP_STUCK_S = CreepConfig().stuck_s
 PLAN_PERIOD_S = 0.5  # the policy plans at the data's 2 Hz
@@ -349,6 +350,27 @@ def drive_or_fail(task: Task, progress: Callable[[int], None] | None = None) -> 
         return doc
 
 
+def check_routes(
+    routes: list[Route], net_override: Path | None = None, routes_file: Path | None = None
+) -> dict:
+    """UserError, before any driving, for a route whose network is not the one it was made for
+    (sha256) or whose edges are not a drivable path in it; the networks resolved, by (town,
+    net_name, sha256) (a user network's path travels with the tasks: workers have no route file
+    to look beside)."""
+    from drive.geometry import route_geometry
+
+    nets: dict = {}
+    for r in routes:
+        key = (r.town, r.net_name, r.network_sha256)
+        if key not in nets:
+            nets[key] = resolve_net(r, net_override, routes_file)
+        try:
+            route_geometry(nets[key], r.edges)
+        except ValueError as e:
+            raise UserError(f"route {r.route_id}: {e}") from None
+    return nets
+
+
 def route_score(doc: dict) -> score.RouteScore:
     """The RouteScore of a per-route result document (route ids group repetitions)."""
     rid = doc["route"]["route_id"]
@@ -505,16 +527,16 @@ def run(args) -> int:
     max_sim = args.max_sim_s
     if max_sim is not None and max_sim <= 0:
         raise UserError(f"--max-sim-s must be > 0, got {max_sim}")
+    if args.limit is not None and args.limit < 1:
+        raise UserError(
+            f"--limit must be >= 1 (leave it out to drive every route), got {args.limit}"
+        )
+    out = outputs.check_dir(args.out)  # before any driving
     spec = parse_policy(args.policy, args.device)
     name, routes = load_routes(args.routes)
-    if args.limit:
+    if args.limit is not None:
         routes = routes[: args.limit]
-    # each network resolved once, here (a file for another network fails before any driving);
-    # a user network's path travels with the tasks (workers have no route file to look beside)
-    nets = {
-        key: resolve_net(r, args.net, Path(args.routes))
-        for key, r in {(r.town, r.net_name, r.network_sha256): r for r in routes}.items()
-    }
+    nets = check_routes(routes, args.net, Path(args.routes))
     if spec.kind == "ckpt":  # a sensor mismatch fails before any driving, too
         from datagen.sensors.config import SensorConfig
         from drive.policy import check_sensor_config
@@ -529,7 +551,6 @@ def run(args) -> int:
             baseline[_key(d)] = d
         if not baseline:
             raise UserError(f"--baseline {args.baseline}: no routes/*.json results in it")
-    out = Path(args.out)
     key = run_key(spec, args)
     tasks = [
         Task(
@@ -563,6 +584,6 @@ def run(args) -> int:
     summary = summary_doc(name, docs, baseline)
     _write_json(out / "summary.json", summary)
     text = format_summary(summary)
-    (out / "summary.txt").write_text(text + "\n")
+    outputs.write_text(out / "summary.txt", text + "\n")
     print(text)
     return 0

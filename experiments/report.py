@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from drive.score import TABLE_COLUMNS, Summary, summarise
-from schemas import outputs
 from experiments import verdicts
+from schemas import outputs
 
 # The paper's Table III (CARLA 42 Routes), by our variant names; per-km infractions in the
 # order of PAPER_COLUMNS (the paper has no stop-sign column).

@@ -220,28 +220,42 @@ def _gs_routes(tmp_path):
 
 def test_a_failing_route_is_recorded_the_others_go_on_and_a_rerun_resumes(tmp_path, capsys):
     """Issue 38 item 8: a route whose drive fails is recorded with its reason (DS 0) and does
-    not stop the benchmark; the same command again keeps the finished route and retries the
+    not stop the benchmark; the same command again keeps the finished route and drives the
     failed one; another policy in the same directory is refused."""
+    from drive.evaluate import execute, summary_doc
+
     _, routes = load_routes(_gs_routes(tmp_path))
+    # a route file edited after the check (its edges no longer connect) fails in its worker
     broken = replace(routes[1], route_id="broken", edges=tuple(reversed(routes[1].edges)))
-    path = tmp_path / "mixed.json"
-    save_routes([routes[0], broken], path, "mixed")
+    out = tmp_path / "direct"
+    spec = PolicySpec("constant")
+    tasks = [Task(r, spec, str(out), False, max_sim_s=10.0) for r in (broken, routes[0])]
+    docs = list(execute(tasks, workers=1))
+    assert [d["route"]["route_id"] for d in docs] == ["broken", routes[0].route_id]
+    assert docs[0]["failure"].startswith("ValueError: edges") and docs[0]["ds"] == 0.0
+    assert "do not connect" in docs[0]["failure"] and not docs[1].get("failure")
+    on_disk = json.loads((out / "routes" / "broken.json").read_text())
+    assert on_disk["failure"] == docs[0]["failure"]
+    summary = summary_doc("x", docs)
+    assert summary["n_routes"] == 2 and summary["n_failed"] == 1
+    assert summary["failed"] == {"broken": docs[0]["failure"]}
+    assert summary["ds"] == pytest.approx(docs[1]["ds"] / 2, rel=1e-4)
+    # through the command: a result left failed (as a crash leaves it) is driven again
+    path = tmp_path / "two.json"
+    save_routes(routes, path, "two")
     out = tmp_path / "o"
     argv = ["eval", "--policy", "constant", "--routes", str(path), "--out", str(out)]
+    argv += ["--max-sim-s", "10"]
     assert cli.main(argv) == 0
-    text = capsys.readouterr().out
-    assert "FAILED broken (scored DS 0):" in text and "do not connect" in text
-    good = json.loads((out / "routes" / f"{routes[0].route_id}.json").read_text())
-    bad = json.loads((out / "routes" / "broken.json").read_text())
-    assert bad["failure"] and bad["ds"] == 0.0 and not good.get("failure")
-    summary = json.loads((out / "summary.json").read_text())
-    assert summary["n_routes"] == 2 and summary["n_failed"] == 1
-    assert summary["ds"] == pytest.approx(good["ds"] / 2, rel=1e-4)
-    mtime = (out / "routes" / f"{routes[0].route_id}.json").stat().st_mtime_ns
+    capsys.readouterr()
+    first, second = (out / "routes" / f"{r.route_id}.json" for r in routes)
+    doc = json.loads(second.read_text())
+    second.write_text(json.dumps({**doc, "failure": "RuntimeError: it crashed", "ds": 0.0}))
+    mtime = first.stat().st_mtime_ns
     assert cli.main(argv) == 0
     assert "keeping 1 finished route result(s), driving 1" in capsys.readouterr().out
-    assert (out / "routes" / f"{routes[0].route_id}.json").stat().st_mtime_ns == mtime
-    msg = _error(capsys, ["eval", "--policy", "expert", "--routes", str(path), "--out", str(out)])
+    assert first.stat().st_mtime_ns == mtime and not json.loads(second.read_text()).get("failure")
+    msg = _error(capsys, ["eval", "--policy", "expert", *argv[3:]])
     assert "driven by another policy" in msg
 
 
