@@ -47,6 +47,13 @@ def _add_eval(e: argparse.ArgumentParser) -> None:
         help="drive only the first N routes of the file (N >= 1; default: all)",
     )
     e.add_argument(
+        "--repetitions",
+        type=int,
+        default=1,
+        help="drive every route N times with different traffic seeds (the leaderboard's "
+        "--repetitions); the summary averages a route's repetitions first",
+    )
+    e.add_argument(
         "--max-sim-s",
         type=float,
         default=None,

@@ -11,12 +11,23 @@ placed in SUMO anywhere (off its lane or the road too) with its speed, so others
 A policy that has stood still 55 s creeps forward unless its LiDAR sees something just ahead
 (TransFuser's creep, `drive.controller.Creep`; `--no-creep` turns it off); each route's result
 counts its creeps.
-The route ends when it is complete, on a route deviation, a blocked agent or a timeout.
+The route ends when it is complete, on a route deviation, a blocked agent or a timeout; a
+collision ends nothing (the expert's world drives on after one, as the leaderboard does).
 
-Writes OUT/routes/<route_id>.json (scores, every infraction with time and position, the extra
-measures, timing apart under "timing"), OUT/summary.json and OUT/summary.txt (the table of the
-paper's Table III), and with --record N, OUT/videos/<route_id>.mp4 for the first N routes. The
-same route file, policy and checkpoint give the same numbers (timing aside).
+`--repetitions N` drives every route N times (the leaderboard's `--repetitions`): repetition 0
+with the route's own seed, repetition r with a seed drawn from (route seed, r) for the traffic
+and the sensors' noise (repetition_seed); the summary averages a route's repetitions before
+taking means and intervals over routes (drive/score.py).
+
+Writes OUT/routes/<route_id>.json (repetition 0; <route_id>_rep<r>.json for the others: scores,
+every infraction with time and position, the extra measures, timing apart under "timing"),
+OUT/summary.json and OUT/summary.txt (the table of the paper's Table III), and with --record N,
+OUT/videos/<route_id>.mp4 for the first N routes. A route whose drive fails (the simulation
+raised) is recorded as failed with its reason under "failure" (scored DS 0, as the leaderboard
+scores a crashed route) and the others go on. Rerunning the same command resumes: finished
+routes are kept, failed and missing ones are driven; results of another policy or setting in
+OUT are refused. The same route file, policy and checkpoint give the same numbers (timing
+aside).
 """
 
 from __future__ import annotations
@@ -24,8 +35,9 @@ from __future__ import annotations
 import json
 import os
 import time
+import traceback
 from collections.abc import Callable, Iterable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -67,6 +79,22 @@ class Task:
     net_override: str | None = None
     max_sim_s: float | None = None  # stop after this much simulated time (smoke runs)
     creep: bool = True  # a policy that stands still creeps (drive.controller.Creep)
+    repetition: int = 0  # which repetition of the route (repetition_seed)
+    run: dict = field(default_factory=dict)  # what a result must match to be resumed (run_key)
+
+
+def repetition_seed(route_seed: int, repetition: int) -> int:
+    """The world's and the sensors' seed of a route's repetition: the route's own for
+    repetition 0, else one drawn from (route seed, repetition)."""
+    if repetition == 0:
+        return int(route_seed)
+    state = np.random.SeedSequence([int(route_seed), int(repetition)]).generate_state(1)
+    return int(state[0] % (2**31 - 1))
+
+
+def result_name(route_id: str, repetition: int) -> str:
+    """File stem of a route's result: the route id, with _rep<r> for repetitions r > 0."""
+    return route_id if repetition == 0 else f"{route_id}_rep{repetition}"
 
 
 def _write_json(path: Path, doc: dict) -> None:
@@ -101,7 +129,9 @@ def drive_route(
     from drive.sim import DrivenWorld, SensorStream
 
     t0 = time.perf_counter()
-    route, spec = task.route, task.policy
+    spec = task.policy
+    route = replace(task.route, seed=repetition_seed(task.route.seed, task.repetition))
+    name = result_name(route.route_id, task.repetition)
     net = resolve_net(route, Path(task.net_override) if task.net_override else None)
     geom = route_geometry(net, route.edges)
     static = load_static_scene(net)
@@ -129,14 +159,16 @@ def drive_route(
     if task.record:
         from drive.video import Recorder
 
-        recorder = Recorder(Path(task.out_dir) / "videos" / f"{route.route_id}.mp4")
+        recorder = Recorder(Path(task.out_dir) / "videos" / f"{name}.mp4")
     tracker = InfractionTracker(geom, layout)
     timing = {"setup": time.perf_counter() - t0, "sim": 0.0, "sensors": 0.0, "policy": 0.0}
     timing.update(judge=0.0)
     external = planner is not None or not spec.privileged
     creep = Creep(step_s=STEP_S) if task.creep and external else None
     clear_ahead = False  # the creep's safety box at the last plan, looked at only when due
-    with DrivenWorld(net, route, external=external, **(world_options or {})) as world:
+    # a collision ends no route (the leaderboard drives on): the same judge scores every policy
+    options = {"end_on_collision": False, **(world_options or {})}
+    with DrivenWorld(net, route, external=external, **options) as world:
         if on_start is not None:
             on_start()
         frame = world.state()
@@ -150,8 +182,7 @@ def drive_route(
         k = 0
         while True:
             t = time.perf_counter()
-            truth = world.truth()
-            tracker.step(frame, STEP_S, light=(truth.light, truth.light_distance_m))
+            tracker.step(frame, STEP_S)
             timing["judge"] += time.perf_counter() - t
             if tracker.ended is not None or world.ended is not None:
                 break
@@ -196,6 +227,9 @@ def drive_route(
                 world.place_ego(vehicle.pose, vehicle.speed_mps)
             world.step()
             if world.ended is not None:  # SUMO may have taken the ego out: no state to read
+                if plan is not None and tracker.ended is None:
+                    # a placed ego is where the controller put it: judge that last step
+                    tracker.step(_placed(frame, vehicle), STEP_S)
                 timing["sim"] += time.perf_counter() - t
                 break
             frame = world.state()
@@ -205,11 +239,7 @@ def drive_route(
             k += 1
         world_end = world.ended
         world_detail = world.end_detail
-        # SUMO teleports a vehicle that has waited TELEPORT_S, a placed ego too (the world
-        # ends the drive then): standing that long is the agent blocked
-        standing = tracker.standing_s >= TELEPORT_S - 1.0
-        if tracker.ended is None and (world_end in WORLD_BLOCKED or (world_end and standing)):
-            tracker.end("agent_blocked", frame, f"{world_end}: {world_detail}")
+        judge_world_end(tracker, frame, world_end, world_detail, external)
         sim_s = frame.time_s - (tracker.start_time_s or frame.time_s)
     if recorder is not None:
         recorder.close()
@@ -218,8 +248,12 @@ def drive_route(
     )
     timing["total"] = time.perf_counter() - t0
     doc = {
-        "route": route.to_dict(),
+        "route": task.route.to_dict(),
+        "repetition": task.repetition,
+        "seed": route.seed,
+        "run": task.run,
         "policy": spec.name,
+        "complete": tracker.complete,
         "rc": round(result.rc, 4),
         "is": round(result.infraction_score, 6),
         "ds": round(result.ds, 4),
@@ -239,37 +273,118 @@ def drive_route(
         "end_detail": world_detail if tracker.ended is None else "",
         "timing": {k: round(v, 4) for k, v in timing.items()},
     }
-    _write_json(Path(task.out_dir) / "routes" / f"{route.route_id}.json", doc)
+    _write_json(Path(task.out_dir) / "routes" / f"{name}.json", doc)
     return doc
 
 
-def check_routes(routes: list[Route], net_override: Path | None = None) -> None:
+def judge_world_end(tracker, frame, world_end: str | None, detail: str, external: bool) -> None:
+    """Score a drive the world ended before the tracker did (`frame`: the last state).
+
+    SUMO teleports a vehicle that has waited TELEPORT_S, a placed ego too (the world ends the
+    drive then): standing that long is the agent blocked. SUMO taking a placed ego out away
+    from its route's lanes (it had mapped the ego to another road) is a route deviation, however
+    close to the route that was (the leaderboard's InRouteTest would have seen it leave)."""
+    if tracker.ended is not None or world_end is None:
+        return
+    standing = tracker.standing_s >= TELEPORT_S - 1.0
+    if world_end in WORLD_BLOCKED or standing:
+        tracker.end("agent_blocked", frame, f"{world_end}: {detail}")
+    elif world_end == "route_end" and external and not tracker.complete:
+        p = frame.ego.pose
+        if not tracker.geometry.in_lanes(p.x_m, p.y_m):
+            off = tracker.route_distance_m(frame)
+            tracker.end("route_deviation", frame, f"{detail}, {off:.1f} m from the route")
+
+
+def _placed(frame, vehicle: VehicleState):
+    """The frame after a last step whose state SUMO could not give: the ego where the
+    controller placed it, no agents (their positions are unknown)."""
+    ego = replace(frame.ego, pose=vehicle.pose, speed_mps=vehicle.speed_mps)
+    return replace(frame, time_s=frame.time_s + STEP_S, ego=ego, agents=())
+
+
+def failed_doc(task: Task, reason: str) -> dict:
+    """The result document of a route whose drive failed (RC 0, IS 1, DS 0: score.py)."""
+    s = score.failed_route(task.route.route_id)
+    return {
+        "route": task.route.to_dict(),
+        "repetition": task.repetition,
+        "seed": repetition_seed(task.route.seed, task.repetition),
+        "run": task.run,
+        "policy": task.policy.name,
+        "complete": False,
+        "failure": reason,
+        "rc": s.rc,
+        "is": s.infraction_score,
+        "ds": s.ds,
+        "counts": s.counts,
+        "events": [],
+        "off_road_share": 0.0,
+        "off_route_share": 0.0,
+        "km_driven": 0.0,
+        "distance_m": 0.0,
+        "min_ttc_s": None,
+        "traffic_delay_s": 0.0,
+        "traffic_delay_rate": 0.0,
+        "sim_s": 0.0,
+        "ended": "failed",
+        "creeps": 0,
+        "end_detail": reason,
+        "timing": {"total": 0.0},
+    }
+
+
+def drive_or_fail(task: Task, progress: Callable[[int], None] | None = None) -> dict:
+    """drive_route, or the failed route's document (also written) when the drive raises
+    anything but a UserError (the leaderboard's crashed route: the others go on)."""
+    try:
+        return drive_route(task, progress=progress)
+    except UserError:
+        raise
+    except Exception as e:  # noqa: BLE001 - any failure of one route is that route's result
+        last = traceback.extract_tb(e.__traceback__)[-1]
+        reason = f"{type(e).__name__}: {e} ({Path(last.filename).name}:{last.lineno})"
+        doc = failed_doc(task, reason)
+        name = result_name(task.route.route_id, task.repetition)
+        _write_json(Path(task.out_dir) / "routes" / f"{name}.json", doc)
+        return doc
+
+
+def check_routes(
+    routes: list[Route], net_override: Path | None = None, routes_file: Path | None = None
+) -> dict:
     """UserError, before any driving, for a route whose network is not the one it was made for
-    (sha256) or whose edges are not a drivable path in it."""
+    (sha256) or whose edges are not a drivable path in it; the networks resolved, by (town,
+    net_name, sha256) (a user network's path travels with the tasks: workers have no route file
+    to look beside)."""
     from drive.geometry import route_geometry
 
-    nets = {}
+    nets: dict = {}
     for r in routes:
-        key = (r.town, r.net_path, r.network_sha256)
+        key = (r.town, r.net_name, r.network_sha256)
         if key not in nets:
-            nets[key] = resolve_net(r, net_override)
+            nets[key] = resolve_net(r, net_override, routes_file)
         try:
             route_geometry(nets[key], r.edges)
         except ValueError as e:
             raise UserError(f"route {r.route_id}: {e}") from None
+    return nets
 
 
 def route_score(doc: dict) -> score.RouteScore:
-    """The RouteScore of a per-route result document."""
+    """The RouteScore of a per-route result document (route ids group repetitions)."""
+    rid = doc["route"]["route_id"]
+    if doc.get("failure"):
+        return score.failed_route(rid)
     return score.score_route(
-        doc["rc"], doc["counts"], doc["off_route_share"], doc["route"]["length_m"]
+        doc["rc"], doc["counts"], doc["off_route_share"], doc["route"]["length_m"], rid
     )
 
 
 def route_task(task: Task, progress: Callable[[int], None]) -> dict:
     """The executors' task function: one route; `progress(0)` at every plan (the watchdog's
     heartbeat), `progress(1)` when done."""
-    doc = drive_route(task, progress=progress)
+    doc = drive_or_fail(task, progress=progress)
     progress(1)
     return doc
 
@@ -281,7 +396,7 @@ def execute(
     command), serially in this process with one process worker; results as routes finish."""
     if workers <= 1 and executor == "process":
         for t in tasks:
-            yield drive_route(t)
+            yield drive_or_fail(t)
         return
     from datagen.dataset import executors
 
@@ -291,7 +406,7 @@ def execute(
             executor, route_task, workers=workers, ray_address=ray_address, noun="route"
         ) as ex,
     ):
-        for done in ex.map((t.route.route_id, t) for t in tasks):
+        for done in ex.map((result_name(t.route.route_id, t.repetition), t) for t in tasks):
             yield done.result
 
 
@@ -300,17 +415,26 @@ def _delay_rate(doc: dict) -> float:
     return doc["traffic_delay_s"] / max(doc["sim_s"], 1e-6)
 
 
+def _key(doc: dict) -> str:
+    return result_name(doc["route"]["route_id"], doc.get("repetition", 0))
+
+
 def summary_doc(name: str, docs: list[dict], baseline: dict[str, dict] | None = None) -> dict:
-    """Aggregates of a run: the Summary, plus the extra measures over routes."""
+    """Aggregates of a run: the Summary (routes as the unit, repetitions averaged first), the
+    failed routes with their reasons, plus the extra measures over the drives that ran."""
     s = score.summarise([route_score(d) for d in docs])
-    ttc = [d["min_ttc_s"] for d in docs if d["min_ttc_s"] is not None]
+    ran = [d for d in docs if not d.get("failure")] or docs
+    ttc = [d["min_ttc_s"] for d in ran if d["min_ttc_s"] is not None]
     out = {
         "routes_file": name,
         "policy": docs[0]["policy"],
         **{k: v for k, v in asdict(s).items()},
+        "repetitions": max(d.get("repetition", 0) for d in docs) + 1,
+        "complete": int(sum(bool(d.get("complete")) for d in docs)),
+        "failed": {_key(d): d["failure"] for d in docs if d.get("failure")},
         "min_ttc_s_median": float(np.median(ttc)) if ttc else None,
-        "traffic_delay_s_mean": float(np.mean([d["traffic_delay_s"] for d in docs])),
-        "traffic_delay_rate_mean": float(np.mean([_delay_rate(d) for d in docs])),
+        "traffic_delay_s_mean": float(np.mean([d["traffic_delay_s"] for d in ran])),
+        "traffic_delay_rate_mean": float(np.mean([_delay_rate(d) for d in ran])),
         "sim_s": float(sum(d["sim_s"] for d in docs)),
         "creeps": int(sum(d.get("creeps", 0) for d in docs)),
         "routes_with_creeps": int(sum(d.get("creeps", 0) > 0 for d in docs)),
@@ -318,9 +442,9 @@ def summary_doc(name: str, docs: list[dict], baseline: dict[str, dict] | None = 
     }
     if baseline:
         delta = [
-            _delay_rate(d) - _delay_rate(baseline[d["route"]["route_id"]])
-            for d in docs
-            if d["route"]["route_id"] in baseline
+            _delay_rate(d) - _delay_rate(baseline[_key(d)])
+            for d in ran
+            if _key(d) in baseline and not baseline[_key(d)].get("failure")
         ]
         out["traffic_delay_rate_vs_baseline_mean"] = float(np.mean(delta)) if delta else None
     return out
@@ -329,10 +453,15 @@ def summary_doc(name: str, docs: list[dict], baseline: dict[str, dict] | None = 
 def format_summary(doc: dict) -> str:
     s = score.Summary(**{f: doc[f] for f in score.Summary.__dataclass_fields__})
     lines = [score.format_table([(doc["policy"], s)])]
+    reps = doc.get("repetitions", 1)
+    times = f" x {reps} repetitions (averaged per route)" if reps > 1 else ""
     lines.append(
-        f"{s.n_routes} routes, {s.km_driven:.2f} km driven, {doc['sim_s']:.0f} s simulated in "
+        f"{s.n_routes} routes{times}, {doc.get('complete', 0)} drives complete, "
+        f"{s.km_driven:.2f} km driven, {doc['sim_s']:.0f} s simulated in "
         f"{doc['wall_s']:.0f} s of route wall time; infractions per km; ± 95% CI over routes"
     )
+    for key, why in doc.get("failed", {}).items():
+        lines.append(f"FAILED {key} (scored DS 0): {why}")
     ttc = doc["min_ttc_s_median"]
     extra = f"median min TTC {ttc:.1f} s" if ttc is not None else "no TTC below 5 s"
     extra += (
@@ -350,6 +479,41 @@ def format_summary(doc: dict) -> str:
     return "\n".join(lines)
 
 
+def run_key(spec: PolicySpec, args) -> dict:
+    """What a result in OUT must have been driven with to be kept on a rerun: the policy (a
+    checkpoint by its bytes' sha256), creep and the smoke-run limit."""
+    key = {"policy": spec.name, "creep": not args.no_creep, "max_sim_s": args.max_sim_s}
+    if spec.kind == "ckpt":
+        from datagen.world.towns import network_sha256  # the sha256 of any file's bytes
+
+        key["checkpoint_sha256"] = network_sha256(Path(spec.path))
+    return key
+
+
+def resumable(tasks: list[Task], out: Path) -> dict[str, dict]:
+    """Results in OUT/routes that this run keeps (finished drives of the same route,
+    repetition and run key), by result name; UserError if OUT holds another run's results."""
+    kept = {}
+    for t in tasks:
+        name = result_name(t.route.route_id, t.repetition)
+        path = out / "routes" / f"{name}.json"
+        if not path.is_file():
+            continue
+        try:
+            doc = json.loads(path.read_text())
+            same = doc.get("run") == t.run and doc["route"] == t.route.to_dict()
+        except (ValueError, KeyError, TypeError):
+            same = False
+        if not same:
+            raise UserError(
+                f"{out} holds a result of {name} driven by another policy, setting or route "
+                f"file ({path}); give another --out"
+            )
+        if not doc.get("failure"):
+            kept[name] = doc
+    return kept
+
+
 def run(args) -> int:
     from drive.policy import parse_policy
     from drive.routes import load_routes
@@ -358,6 +522,8 @@ def run(args) -> int:
         raise UserError(f"--workers must be >= 1, got {args.workers}")
     if args.record < 0:
         raise UserError(f"--record must be >= 0, got {args.record}")
+    if args.repetitions < 1:
+        raise UserError(f"--repetitions must be >= 1, got {args.repetitions}")
     max_sim = args.max_sim_s
     if max_sim is not None and max_sim <= 0:
         raise UserError(f"--max-sim-s must be > 0, got {max_sim}")
@@ -370,7 +536,7 @@ def run(args) -> int:
     name, routes = load_routes(args.routes)
     if args.limit is not None:
         routes = routes[: args.limit]
-    check_routes(routes, args.net)
+    nets = check_routes(routes, args.net, Path(args.routes))
     if spec.kind == "ckpt":  # a sensor mismatch fails before any driving, too
         from datagen.sensors.config import SensorConfig
         from drive.policy import check_sensor_config
@@ -382,31 +548,39 @@ def run(args) -> int:
         baseline = {}
         for f in sorted((Path(args.baseline) / "routes").glob("*.json")):
             d = json.loads(f.read_text())
-            baseline[d["route"]["route_id"]] = d
+            baseline[_key(d)] = d
         if not baseline:
             raise UserError(f"--baseline {args.baseline}: no routes/*.json results in it")
+    key = run_key(spec, args)
     tasks = [
         Task(
             r,
             spec,
             str(out),
-            i < args.record,
-            str(args.net) if args.net else None,
+            i < args.record and rep == 0,
+            None if r.town and not args.net else str(nets[(r.town, r.net_name, r.network_sha256)]),
             max_sim,
             creep=not args.no_creep,
+            repetition=rep,
+            run=key,
         )
+        for rep in range(args.repetitions)
         for i, r in enumerate(routes)
     ]
+    kept = resumable(tasks, out)
+    todo = [t for t in tasks if result_name(t.route.route_id, t.repetition) not in kept]
+    if kept:
+        print(f"{out}: keeping {len(kept)} finished route result(s), driving {len(todo)}")
     from tqdm import tqdm
 
-    docs: list[dict] = []
-    with tqdm(total=len(tasks), desc=f"drive {spec.name}", unit="route") as bar:
-        for doc in execute(tasks, args.workers, args.executor, args.ray_address):
+    docs: list[dict] = list(kept.values())
+    with tqdm(total=len(todo), desc=f"drive {spec.name}", unit="route") as bar:
+        for doc in execute(todo, args.workers, args.executor, args.ray_address):
             docs.append(doc)
             bar.update()
             bar.set_postfix(ds=f"{doc['ds']:.1f}", last=doc["ended"])
-    order = {t.route.route_id: i for i, t in enumerate(tasks)}
-    docs.sort(key=lambda d: order[d["route"]["route_id"]])  # as the route file lists them
+    order = {result_name(t.route.route_id, t.repetition): i for i, t in enumerate(tasks)}
+    docs.sort(key=lambda d: order[_key(d)])  # as the route file lists them, repetition by rep.
     summary = summary_doc(name, docs, baseline)
     _write_json(out / "summary.json", summary)
     text = format_summary(summary)

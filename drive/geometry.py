@@ -12,12 +12,14 @@ then the junction's internal lane(s) of that connection. Lanes: every car lane o
 and every internal lane of a connection between consecutive route edges; `in_lanes` tells
 whether a point is on them (the leaderboard's "route lanes"). Stop lines: the end of each route
 edge whose connection to the next one is signalised (a traffic light) or stop-controlled (SUMO
-link state 's' or 'w'), across all the edge's car lanes.
+link state 's' or 'w'), across all the edge's car lanes, one segment per lane with the signal
+links that govern it (so a crossing is judged against the line's own signal, wherever the ego
+is: off its lane or off the network too).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -32,13 +34,31 @@ class StopLine:
         kind: "light" or "stop".
         s_m: its position along the route centreline, m.
         junction: SUMO id of the junction it guards.
-        xy_m: (2, 2) float64 the line's end points across the approach, world frame.
+        xy_m: (2, 2) float64 the line's end points across the approach, world frame: its
+            left end, then its right end (seen in the direction of travel).
+        lane_xy_m: (K, 2, 2) float64 the line's segment across each of the approach's K car
+            lanes (right end, left end; world frame); they tile xy_m.
+        direction: (2,) float64 unit vector of travel across the line (the approach's heading
+            at its end), world frame; None: xy_m's left-to-right direction turned a quarter
+            counter-clockwise (normal to the line).
+        tls_id: the traffic light of a "light" line ("" for a stop sign).
+        lane_links: per lane, the indices into that light's state string (one character per
+            link, sumo getRedYellowGreenState) of the links that govern it: its connection to
+            the route's next edge, or all its connections if it has none to it.
     """
 
     kind: str
     s_m: float
     junction: str
     xy_m: np.ndarray
+    lane_xy_m: np.ndarray | None = None
+    direction: np.ndarray | None = None
+    tls_id: str = ""
+    lane_links: tuple[tuple[int, ...], ...] = ()
+
+    def segments(self) -> np.ndarray:
+        """(K, 2, 2) the segments a crossing is judged on (per lane, else the whole line)."""
+        return self.lane_xy_m if self.lane_xy_m is not None else self.xy_m[None]
 
 
 @dataclass(frozen=True)
@@ -136,6 +156,41 @@ def _dedupe(pts: np.ndarray) -> np.ndarray:
     return pts[np.concatenate([[True], step > 1e-3])]
 
 
+def _stop_line(kind: str, junction: str, lanes: list, con, nxt_edge) -> StopLine:
+    """The stop line at the end of an edge's car `lanes` whose route connection `con` leads to
+    `nxt_edge` (module docstring); s_m is filled in by the caller."""
+    segs, dirs, links = [], [], []
+    for ln in lanes:
+        p = np.asarray(ln.getShape(), dtype=np.float64)
+        u = p[-1] - p[-2]
+        u = u / max(np.hypot(*u), 1e-9)
+        n = np.array([-u[1], u[0]]) * 0.5 * ln.getWidth()  # to the lane's left
+        segs.append([p[-1] - n, p[-1] + n])
+        dirs.append(u)
+        own = [c for c in ln.getOutgoing() if c.getToLane().getEdge() == nxt_edge]
+        idx = {c.getTLLinkIndex() for c in (own or ln.getOutgoing())}
+        links.append(tuple(sorted(i for i in idx if i >= 0)))
+    segs = np.asarray(segs)  # (K, 2, 2)
+    ends = segs.reshape(-1, 2)
+    # the two extreme points across the approach: left end, right end
+    axis = ends[1] - ends[0]  # to the left
+    proj = ends @ axis
+    line = np.stack([ends[int(np.argmax(proj))], ends[int(np.argmin(proj))]])
+    u = np.mean(dirs, axis=0)
+    u = u / max(np.hypot(*u), 1e-9)
+    tls = con.getTLSID() if kind == "light" else ""
+    return StopLine(
+        kind,
+        0.0,
+        junction,
+        line,
+        lane_xy_m=segs,
+        direction=u,
+        tls_id=tls or "",
+        lane_links=tuple(links) if kind == "light" else (),
+    )
+
+
 def route_geometry(net_path: str | Path, edges: tuple[str, ...]) -> RouteGeometry:
     """Geometry of the route `edges` on the network (module docstring); ValueError if an edge
     is missing or two consecutive edges do not connect for cars."""
@@ -144,7 +199,7 @@ def route_geometry(net_path: str | Path, edges: tuple[str, ...]) -> RouteGeometr
     net = read_net(str(net_path))
     pieces: list[np.ndarray] = []
     polys = []
-    stops: list[tuple[str, float, str, np.ndarray]] = []
+    stops: list[tuple] = []
     junctions = 0
     s_total = 0.0
     for k, eid in enumerate(edges):
@@ -160,7 +215,8 @@ def route_geometry(net_path: str | Path, edges: tuple[str, ...]) -> RouteGeometr
         if k + 1 < len(edges):
             if not net.hasEdge(edges[k + 1]):
                 raise ValueError(f"edge {edges[k + 1]!r} is not in {Path(net_path).name}")
-            con = _connection(edge, net.getEdge(edges[k + 1]))
+            nxt_edge = net.getEdge(edges[k + 1])
+            con = _connection(edge, nxt_edge)
             if con is None:
                 raise ValueError(f"edges {eid!r} and {edges[k + 1]!r} do not connect for cars")
             lane = con.getFromLane()
@@ -183,19 +239,7 @@ def route_geometry(net_path: str | Path, edges: tuple[str, ...]) -> RouteGeometr
         elif con.getState() in ("s", "w"):
             kind = "stop"
         if kind is not None:
-            ends = []
-            for ln in lanes:
-                p = np.asarray(ln.getShape(), dtype=np.float64)
-                u = p[-1] - p[-2]
-                u = u / max(np.hypot(*u), 1e-9)
-                n = np.array([-u[1], u[0]]) * 0.5 * ln.getWidth()
-                ends += [p[-1] + n, p[-1] - n]
-            ends = np.asarray(ends)
-            # the two extreme points across the approach
-            axis = ends[0] - ends[1]
-            proj = ends @ axis
-            line = np.stack([ends[int(np.argmax(proj))], ends[int(np.argmin(proj))]])
-            stops.append((kind, s_total, node.getID(), line))
+            stops.append((s_total, _stop_line(kind, node.getID(), lanes, con, nxt_edge)))
         via = con.getViaLaneID()
         for vl in _via_chain(net, via) if via else []:
             vshape = np.asarray(vl.getShape(), dtype=np.float64)
@@ -211,7 +255,7 @@ def route_geometry(net_path: str | Path, edges: tuple[str, ...]) -> RouteGeometr
     s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pts, axis=0).T))])
     # stop-line positions were summed over lane shapes; map them onto the deduped centreline
     scale = s[-1] / max(s_total, 1e-9)
-    stop_lines = tuple(StopLine(k, sl * scale, j, xy) for k, sl, j, xy in stops)
+    stop_lines = tuple(replace(line, s_m=sl * scale) for sl, line in stops)
     lanes_geom = unary_union(polys)
     from shapely import prepare
 

@@ -83,6 +83,25 @@ class Layout:
 
         return len(self._kerb.query(shapely.Point(x_m, y_m), predicate="intersects")) > 0
 
+    def _points_in(self, tree, xy_m: np.ndarray) -> np.ndarray:
+        import shapely
+
+        pts = shapely.points(np.asarray(xy_m, dtype=np.float64).reshape(-1, 2))
+        hit = np.zeros(len(pts), bool)
+        hit[tree.query(pts, predicate="intersects")[0]] = True
+        return hit
+
+    def kerb_points(self, xy_m: np.ndarray) -> np.ndarray:
+        """(N,) bool: which of the world points (N, 2) lie on a sidewalk or walking area."""
+        return self._points_in(self._kerb, xy_m)
+
+    def road_points(self, xy_m: np.ndarray, on_kerb: np.ndarray | None = None) -> np.ndarray:
+        """(N,) bool: which of the world points (N, 2) lie on the drivable area; `on_kerb`:
+        `self.kerb_points(xy_m)` if the caller has it already."""
+        if on_kerb is None:
+            on_kerb = self.kerb_points(xy_m)
+        return ~on_kerb & self._points_in(self._road, xy_m)
+
     def hits_obstacle(self, corners: np.ndarray) -> bool:
         """The box (4, 2) world corners touches a building, pole, sign or tree trunk."""
         if self._obstacles is None:

@@ -16,8 +16,12 @@ Standard benchmarks (BENCHMARKS), generated from `--seed 0` and checked into dri
 - `heldout_short`, `heldout_long`: ten routes each on the held-out town (datagen.world.towns.
   HELD_OUT_TOWNS, never in a build), weathers in turn (the role of Town05 Short / Long).
 
-The JSON (ROUTESET_VERSION) names the network of every route by built-in town or file path and
-by its sha256, so a route file is never driven on another network.
+The JSON (ROUTESET_VERSION) names the network of every route by built-in town or by file name,
+with its sha256, so a route file is never driven on another network and stays portable: the
+file is found at run time (`--net`, else beside the route file, else in the working directory;
+resolve_net). Every route is checked drivable when it is generated: the ego is inserted at its
+start as a build inserts it (datagen.world.World, no traffic); a route it cannot start is not
+written.
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ import numpy as np
 from datagen.errors import UserError
 from schemas import WEATHERS, outputs
 
-ROUTESET_VERSION = 1
+ROUTESET_VERSION = 2  # 1: user networks named by absolute path ("net_path"), still read
 SHORT_M = (100.0, 500.0)
 LONG_M = (1000.0, 2000.0)
 SHORT_JUNCTIONS = (2, 4)  # "about 3"
@@ -45,8 +49,9 @@ class Route:
 
     Attributes:
         route_id: unique within its set, e.g. "boulevard-short-03".
-        town: built-in town name, or None for a user network (then net_path).
-        net_path: the network file of a user network (as given to `drive routes --net`).
+        town: built-in town name, or None for a user network (then net_name).
+        net_name: the file name of a user network (`drive routes --net`), found at run time
+            (resolve_net); None for a built-in town.
         network_sha256: sha256 of the network's bytes (datagen.world.towns.network_sha256).
         edges: edge ids, in driving order.
         length_m: centreline length, m.
@@ -58,7 +63,7 @@ class Route:
 
     route_id: str
     town: str | None
-    net_path: str | None
+    net_name: str | None
     network_sha256: str
     edges: tuple[str, ...]
     length_m: float
@@ -75,19 +80,35 @@ class Route:
 
     @staticmethod
     def from_dict(d: dict) -> Route:
+        d = dict(d)
+        if "net_path" in d:  # version 1: the network's path on the machine that wrote it
+            path = d.pop("net_path")
+            d["net_name"] = Path(path).name if path else None
         return Route(**{**d, "edges": tuple(d["edges"])})
 
 
-def resolve_net(route: Route, net_override: Path | None = None) -> Path:
-    """The network file of `route`, checked against its sha256 (UserError if it differs)."""
+def resolve_net(
+    route: Route, net_override: Path | None = None, routes_file: Path | None = None
+) -> Path:
+    """The network file of `route`, checked against its sha256 (UserError if it differs): a
+    built-in town's, else `net_override` (--net), else the file named net_name beside
+    `routes_file`, else in the working directory."""
     from datagen.world.towns import check_network, network_sha256, town_net_path
 
     if net_override is not None:
         path = check_network(net_override)
     elif route.town is not None:
         path = town_net_path(route.town)
-    elif route.net_path:
-        path = check_network(Path(route.net_path))
+    elif route.net_name:
+        where = [Path(routes_file).parent] if routes_file is not None else []
+        found = [d / route.net_name for d in [*where, Path.cwd()] if (d / route.net_name).is_file()]
+        if not found:
+            raise UserError(
+                f"route {route.route_id} is for the network {route.net_name} (sha256 "
+                f"{route.network_sha256[:12]}...), not found beside the route file or here; "
+                "give it with --net"
+            )
+        path = check_network(found[0])
     else:
         raise UserError(f"route {route.route_id}: names neither a town nor a network file")
     if network_sha256(path) != route.network_sha256:
@@ -111,7 +132,7 @@ def load_routes(path: Path) -> tuple[str, list[Route]]:
         raise UserError(f"{path}: no such route file")
     try:
         doc = json.loads(path.read_text())
-        if doc.get("version") != ROUTESET_VERSION:
+        if doc.get("version") not in (1, ROUTESET_VERSION):
             raise ValueError(f"version {doc.get('version')!r}, expected {ROUTESET_VERSION}")
         routes = [Route.from_dict(r) for r in doc["routes"]]
     except (ValueError, KeyError, TypeError, AttributeError) as e:
@@ -121,9 +142,35 @@ def load_routes(path: Path) -> tuple[str, list[Route]]:
     return str(doc.get("name", path.stem)), routes
 
 
-def _pick_route(net, edges, rng, length_m, junctions, geometry_of, taken):
-    """One random car route with its length and junction count in range, not in `taken`
-    (or None)."""
+def undrivable(net_path: Path, edges: tuple[str, ...]) -> str | None:
+    """Why the ego cannot start on the route `edges` (None if it can): it is inserted at the
+    route's start as a build inserts it (datagen.world.World: SUMO's own checks of the route for
+    the ego's type, then insertion at the first edge's start), with no other traffic."""
+    from datagen.world import World, WorldConfig
+
+    config = WorldConfig(
+        net_path=Path(net_path),
+        seed=0,
+        weather="sunny",
+        behaviour="normal",
+        n_vehicles=0,
+        n_pedestrians=0,
+        reroute=False,
+        warmup_s=0.0,
+        ego_route=tuple(edges),
+    )
+    try:
+        with World(config):
+            return None
+    except UserError:
+        raise
+    except Exception as e:  # noqa: BLE001 - SUMO's refusal, whatever its type
+        return f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
+
+
+def _pick_route(net, edges, rng, length_m, junctions, geometry_of, taken, check=None):
+    """One random car route with its length and junction count in range, not in `taken`,
+    on which `check(ids)` finds nothing wrong (or None)."""
     xy = np.array([e.getShape()[len(e.getShape()) // 2] for e in edges])
     lo, hi = length_m
     for _ in range(400):
@@ -144,6 +191,8 @@ def _pick_route(net, edges, rng, length_m, junctions, geometry_of, taken):
         except ValueError:
             continue
         if lo <= geom.length_m <= hi and junctions[0] <= geom.junctions <= junctions[1]:
+            if check is not None and check(ids) is not None:
+                continue
             return ids, geom
     return None
 
@@ -191,10 +240,11 @@ def generate(
                 junc,
                 lambda ids: route_geometry(net_path, ids),
                 {r.edges for r in out},
+                lambda ids: undrivable(net_path, ids),
             )
             if found is None:
                 raise UserError(
-                    f"{net_path}: found no {kind} route of {length[0]:.0f}-{length[1]:.0f} m "
+                    f"{net_path}: found no drivable {kind} route of {length[0]:.0f}-{length[1]:.0f} m "
                     f"through {junc[0]}-{junc[1]} junctions"
                 )
             ids, geom = found
@@ -205,7 +255,7 @@ def generate(
                 Route(
                     route_id=f"{prefix}-{kind}-{i:02d}",
                     town=town,
-                    net_path=None if town else str(net_path),
+                    net_name=None if town else Path(net_path).name,
                     network_sha256=sha,
                     edges=ids,
                     length_m=round(geom.length_m, 2),

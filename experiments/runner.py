@@ -9,9 +9,12 @@ Steps, in order (each a real command; its log in OUT/logs/STEP.log):
    the data but never trained on (`train fit --val-towns`), as the paper holds Town05 out;
 2. per variant and seed: `train fit` (the full model and the paper's Table III ablations), then
    `train eval --split val` (open loop, on the held-out town);
-3. per variant and seed: `drive eval` on the seen-town routes (drive/routes/training_towns.json)
-   and the held-out ones (heldout_short.json, the unseen town `boulevard`);
-4. `train analyze` of the full model (Table II), `drive swap` of the full and the no-weather
+3. per variant and seed: `drive eval` on the seen-town routes (OUT/routes/seen.json: routes of
+   drive/routes/training_towns.json in the towns the model trained on, the preset's val_town
+   excluded, taken in turn from each town) and the held-out ones (heldout_short.json, the unseen
+   town `boulevard`, every route recorded as a video), each with and without the creep
+   (`--no-creep`: what the model does alone);
+4. `train analyze` of every full model (Table II), `drive swap` of the full and the no-weather
    model (Fig. 6);
 5. OUT/REPORT.md (experiments/report.py), from the JSON files the steps wrote.
 
@@ -124,6 +127,36 @@ def run_name(variant: str, seed: int) -> str:
     return f"{variant}-s{seed}"
 
 
+def seen_routes(p: Preset):
+    """The seen-town routes of preset `p`: training_towns.json's routes in the towns of its
+    build but not its val_town (held out of training), taken in turn from each town so that
+    several towns are covered, `p.seen_routes` of them (0: all)."""
+    from datagen.world.towns import TOWN_NAMES
+    from drive.routes import load_routes
+
+    _, routes = load_routes(ROUTES / "training_towns.json")
+    towns = [t for t in TOWN_NAMES[: p.towns] if t != p.val_town]
+    queues = [[r for r in routes if r.town == t] for t in towns]
+    picked = []
+    while any(queues):
+        for q in queues:
+            if q:
+                picked.append(q.pop(0))
+    return picked[: p.seen_routes] if p.seen_routes else picked
+
+
+def write_seen_routes(p: Preset, out: Path) -> Path:
+    """OUT/routes/seen.json (seen_routes), the route file of the seen-town drives."""
+    from drive.routes import save_routes
+
+    path = out / "routes" / "seen.json"
+    routes = seen_routes(p)
+    if not routes:
+        raise UserError(f"no seen-town routes: the build's towns are only {p.val_town!r}")
+    save_routes(routes, path, "seen")
+    return path
+
+
 def steps(p: Preset, out: Path, device: str, nproc: int) -> list[Step]:
     """Every step of preset `p` writing under `out`, in order."""
     data = str(out / "data")
@@ -148,20 +181,28 @@ def steps(p: Preset, out: Path, device: str, nproc: int) -> list[Step]:
             ev = ("training.cli", "eval", "--ckpt", ckpt, "--shards", data, "--split", "val")
             ev += ("--device", device, "--out", str(run / "eval.json"))
             result.append(Step(f"eval-{name}", ev, f"runs/{name}/eval.json"))
-            for kind, routes, limit in (
-                ("seen", "training_towns.json", p.seen_routes),
-                ("heldout", "heldout_short.json", p.heldout_routes),
+            held = p.heldout_routes or 10
+            for kind, routes, limit, record in (
+                ("seen", out / "routes" / "seen.json", 0, 0),
+                ("heldout", ROUTES / "heldout_short.json", p.heldout_routes, held),
             ):
-                dr = ("drive.cli", "eval", "--policy", f"ckpt:{ckpt}")
-                dr += ("--routes", str(ROUTES / routes), "--workers", str(p.workers))
-                dr += ("--device", device, "--out", str(out / "drive" / name / kind))
-                dr += ("--limit", str(limit)) if limit else ()
-                dr += ("--max-sim-s", f"{p.max_sim_s:g}") if p.max_sim_s else ()
-                result.append(Step(f"drive-{kind}-{name}", dr, f"drive/{name}/{kind}/summary.json"))
-    first = run_name("full", p.seeds[0])
-    an = ("training.cli", "analyze", "--ckpt", str(out / "runs" / first / "last.pt"))
-    an += ("--shards", data, "--frames", str(p.analyze_frames), "--device", device)
-    result.append(Step("analyze", an + ("--out", str(out / "analyze.json")), "analyze.json"))
+                for creep in (True, False):
+                    sub = kind if creep else f"{kind}_nocreep"
+                    dr = ("drive.cli", "eval", "--policy", f"ckpt:{ckpt}")
+                    dr += ("--routes", str(routes), "--workers", str(p.workers))
+                    dr += ("--device", device, "--out", str(out / "drive" / name / sub))
+                    dr += ("--limit", str(limit)) if limit else ()
+                    dr += ("--max-sim-s", f"{p.max_sim_s:g}") if p.max_sim_s else ()
+                    dr += ("--record", str(record)) if creep and record else ()
+                    dr += () if creep else ("--no-creep",)
+                    step = f"drive-{kind}-{name}" if creep else f"drive-{kind}-nocreep-{name}"
+                    result.append(Step(step, dr, f"drive/{name}/{sub}/summary.json"))
+    for seed in p.seeds:  # Table II: every full model (seeds are a level of the interval)
+        name = run_name("full", seed)
+        an = ("training.cli", "analyze", "--ckpt", str(out / "runs" / name / "last.pt"))
+        an += ("--shards", data, "--frames", str(p.analyze_frames), "--device", device)
+        an += ("--out", str(out / f"analyze-{name}.json"))
+        result.append(Step(f"analyze-{name}", an, f"analyze-{name}.json"))
     for variant in ("full", "no_weather"):
         if variant not in p.variants:
             continue
@@ -256,6 +297,7 @@ def run(
     config = json.loads(json.dumps(asdict(p)))  # as read back from the file (lists)
     meta = {"preset": preset_name, "config": config, "device": device, "nproc": nproc}
     outputs.write_json(out / "experiment.json", meta)
+    write_seen_routes(p, out)
     for step in all_steps:
         done = out / "steps" / f"{step.name}.json"
         if done.exists():

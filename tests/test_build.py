@@ -516,6 +516,26 @@ def test_bad_input_is_a_one_line_error(tmp_path, args, message):
     assert message in lines[0]
 
 
+def test_the_held_out_town_is_refused_under_any_name(tmp_path):
+    """Issue 38 item 7: `--net` with the cached held-out network (copied, renamed, gzipped)."""
+    import gzip
+    import shutil
+
+    from datagen.world.towns import HELD_OUT_TOWNS, town_net_path
+
+    cached = town_net_path(HELD_OUT_TOWNS[0])
+    copy = tmp_path / "my_city.net.xml"
+    shutil.copyfile(cached, copy)
+    packed = tmp_path / "other.net.xml.gz"
+    packed.write_bytes(gzip.compress(cached.read_bytes()))
+    for net in (cached, copy, packed):
+        proc = datagen("build", "--net", net, "--frames", "4", "--out", tmp_path / "d", check=False)
+        lines = proc.stderr.strip().splitlines()
+        assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+        assert f"the network of the held-out town '{HELD_OUT_TOWNS[0]}'" in lines[0]
+    assert not (tmp_path / "d").exists()
+
+
 @pytest.mark.slow
 def test_a_user_network_is_a_town_named_by_its_stem(tmp_path):
     import sumo

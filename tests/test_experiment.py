@@ -35,7 +35,7 @@ def test_rerun_skips_the_finished_steps_and_runs_the_rest(experiment):
 
 
 def test_report_has_every_table_with_the_presets_rows(experiment):
-    _, _, _, text = experiment
+    out, _, _, text = experiment
     for section in (
         "## Table III, held-out town",
         "## Table III, seen towns",
@@ -47,8 +47,17 @@ def test_report_has_every_table_with_the_presets_rows(experiment):
     ):
         assert section in text, section
     held = text.split("## Table III, held-out town")[1].split("## Table III, seen")[0]
-    assert "| All tasks | 1 | 0.00 |" in held and "| No Weather | 1 | 0.00 |" in held
-    assert "| *paper: All tasks* | 42 | - | *86.79* |" in held
+    assert "| All tasks | 1 | 1 | 0.00 |" in held and "| No Weather | 1 | 1 | 0.00 |" in held
+    assert "| *paper: All tasks* | 42 | - | - | *86.79* |" in held
+    assert "DS without creep" in held
+    seen = text.split("## Table III, seen towns")[1].split("## Paired differences")[0]
+    assert "without `downtown`" in seen  # the minute preset's val_town is not a seen town
+    paired = text.split("## Paired differences")[1].split("## Table II:")[0]
+    assert "| No Weather | 1 |" in paired and "too few samples" in paired
+    assert "![DS per variant](ds.png)" in paired and (out / "ds.png").stat().st_size > 1000
+    assert "- All tasks: [" in paired  # the worst route's video, recorded
+    seen_routes = json.loads((out / "routes" / "seen.json").read_text())["routes"]
+    assert seen_routes and all(r["town"] != "downtown" for r in seen_routes)
     table2 = text.split("## Table II:")[1].split("## Weather swap")[0]
     for head in ("det&pred", "BEV", "traffic", "weather"):
         assert f"| plan x {head} |" in table2

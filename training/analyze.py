@@ -44,10 +44,17 @@ FORMS = ("raw", "centred", "kernel")
 
 
 @torch.no_grad()
-def eca_similarity(model, loader, device: torch.device) -> dict[str, dict[str, float]]:
-    """Per auxiliary head, each of FORMS (module docstring) against the planning head."""
+def eca_similarity(
+    model, loader, device: torch.device, per_frame: dict | None = None
+) -> dict[str, dict[str, float]]:
+    """Per auxiliary head, each of FORMS (module docstring) against the planning head; the
+    per-frame raw and centred values are appended to `per_frame[head][form]` if given (the
+    report's bootstrap interval over frames)."""
     aux = [h for h in model.cfg.heads if h != "planning"]
     sums, n = {h: {"raw": 0.0, "centred": 0.0} for h in aux}, 0
+    if per_frame is not None:
+        for h in aux:
+            per_frame.setdefault(h, {"raw": [], "centred": []})
     for batch in loader:
         batch = to_device(batch, device)
         with autocast(device):
@@ -55,11 +62,15 @@ def eca_similarity(model, loader, device: torch.device) -> dict[str, dict[str, f
         plan = model.eca["planning"].weights(f.float())  # (B, C)
         for h in aux:
             w = model.eca[h].weights(f.float())
-            sums[h]["raw"] += F.cosine_similarity(w, plan, dim=1).sum().item()
+            raw = F.cosine_similarity(w, plan, dim=1)
+            sums[h]["raw"] += raw.sum().item()
             centred = F.cosine_similarity(
                 w - w.mean(1, keepdim=True), plan - plan.mean(1, keepdim=True), dim=1
             )
             sums[h]["centred"] += centred.sum().item()
+            if per_frame is not None:
+                per_frame[h]["raw"] += [round(v, 6) for v in raw.tolist()]
+                per_frame[h]["centred"] += [round(v, 6) for v in centred.tolist()]
         n += len(f)
     kernel = model.eca["planning"].conv.weight.flatten()
     out = {}
@@ -84,13 +95,15 @@ def run(args) -> int:
     check_sensors(state, data.sensor_config(index), shards, args.ckpt)
     picks = np.unique(np.linspace(0, len(index) - 1, min(args.frames, len(index))).astype(int))
 
-    def measure(m) -> dict:
+    def measure(m, per_frame=None) -> dict:
         stream = data.FrameStream(
             index.iloc[picks], m.cfg.output_px, single_frame_lidar=m.cfg.single_frame_lidar
         )
-        return eca_similarity(m, data.make_loader(stream, args.batch_size, 0), device)
+        loader = data.make_loader(stream, args.batch_size, 0)
+        return eca_similarity(m, loader, device, per_frame)
 
-    trained = measure(model)
+    frames: dict = {}
+    trained = measure(model, frames)
     torch.manual_seed(state.get("train_config", {}).get("seed", 0))  # as train fit builds it
     untrained = measure(IIDSU(model.cfg).to(device).eval())
     print(f"ECA channel weights vs planning's, mean over {len(picks)} frames of {shards}")
@@ -109,6 +122,7 @@ def run(args) -> int:
     result = {"checkpoint": str(args.ckpt), "shards": str(shards), "frames": len(picks)}
     result["cosine_similarity"] = {h: v["raw"] for h, v in trained.items()}
     result["trained"], result["untrained"] = trained, untrained
+    result["trained_per_frame"] = frames  # raw and centred per frame, in the frames' order
     outputs.write_json(out, result, indent=2)
     print(f"wrote {out}")
     return 0

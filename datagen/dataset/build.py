@@ -499,6 +499,9 @@ def resolve_towns(args) -> tuple[Town, ...]:
         if not path.is_file():
             raise UserError(f"--net {net}: no such file")
         path = towns_module.check_network(path).resolve()
+        held = towns_module.held_out_town_of(path)
+        if held is not None:  # its sha256 is the held-out town's: never train on it
+            raise UserError(f"--net {net}: this is the network of the held-out town {held!r}")
         stem = path.name
         for suffix in (".gz", ".xml", ".net"):
             stem = stem.removesuffix(suffix)

@@ -430,6 +430,7 @@ def foe_eta_s(
     junction: str,
     own_edge: str,
     stop_controlled: Callable[[str], bool] | None = None,
+    foes: frozenset[str] | None = None,
 ) -> float | None:
     """Soonest time (s) any vehicle moving faster than 1 m/s on another lane into `junction`
     reaches it (straight-line distance from its front to its lane's end over its speed), 0 for
@@ -438,7 +439,12 @@ def foe_eta_s(
     With `stop_controlled` (lane id -> its entry has a stop sign), a vehicle standing within
     STOP_FOE_M of the end of such a lane also counts, with 0: once its stop is done it may start
     at any moment, and SUMO's right-of-way model let one start into the ego's left turn from
-    a minor link (arterial seed 172, "v30 hit ego")."""
+    a minor link (arterial seed 172, "v30 hit ego").
+
+    With `foes` (Network.internal_foes of the ego's passage), only vehicles whose passage can
+    conflict with the ego's count: inside the junction on one of those lanes, or on a lane with
+    a link through one. Counting every vehicle, a stop sign on a busy road never saw a 5 s gap
+    and the ego stood until SUMO took it away (boulevard-short-04, -long-05, issue 38)."""
     best = None
     prefix = f":{junction}_"
     for a in agents:
@@ -448,12 +454,16 @@ def foe_eta_s(
         if a.lane_id.startswith(prefix):
             if not moving or is_crossing(a.lane_id) or _WALKING_AREA.search(a.lane_id):
                 continue
+            if foes is not None and a.lane_id not in foes:
+                continue
             eta = 0.0
         elif a.lane_id.startswith(":"):
             continue
         else:
             edge = a.lane_id.rsplit("_", 1)[0]
             if edge == own_edge or net.to_junction(edge) != junction:
+                continue
+            if foes is not None and not any(k.via_lane_id in foes for k in net.links(a.lane_id)):
                 continue
             end = net.lane(a.lane_id).pts[-1]
             dist = float(np.hypot(end[0] - a.front_xy_m[0], end[1] - a.front_xy_m[1]))
@@ -468,17 +478,22 @@ def foe_eta_s(
 
 
 def junction_clear(
-    agents: Sequence[AgentReading], junction: str | None, kerb: Callable[[str], bool]
+    agents: Sequence[AgentReading],
+    junction: str | None,
+    kerb: Callable[[str], bool],
+    foes: frozenset[str] | None = None,
 ) -> bool:
-    """No other vehicle is inside `junction` (on its internal lanes); people on its crossings
-    and walking areas are left to the pedestrian rule and SUMO. True without a junction."""
+    """No other vehicle is inside `junction` (on its internal lanes; with `foes`, on one of
+    those: Network.internal_foes of the ego's passage); people on its crossings and walking
+    areas are left to the pedestrian rule and SUMO. True without a junction."""
     if junction is None:
         return True
     prefix = f":{junction}_"
     for a in agents:
         lane = a.lane_id
         if lane.startswith(prefix) and not kerb(lane) and not is_crossing(lane):
-            return False
+            if foes is None or lane in foes:
+                return False
     return True
 
 

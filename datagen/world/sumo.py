@@ -190,6 +190,10 @@ class Roads:
     walk_len: np.ndarray
 
 
+FOE_CLEARANCE_M = 2.0  # a foe passage closer than this to the ego's path conflicts with it
+# (half the ego's width, 0.93 m, plus half a car's and a margin)
+
+
 class Network:
     """Static lane queries, cached (implements route.RoadNet)."""
 
@@ -200,6 +204,37 @@ class Network:
         self._allowed: dict[str, tuple[str, ...]] = {}
         self._to_junction: dict[str, str] = {}
         self._stop_controlled: dict[str, bool] = {}
+        self._foes: dict[str, frozenset[str]] = {}
+
+    def internal_foes(self, via_lane_id: str) -> frozenset[str]:
+        """The internal lanes whose passages really conflict with the passage starting at
+        internal lane `via_lane_id`: SUMO's internal foes (getInternalFoes of it and of the
+        internal lanes that follow it) whose shape comes within FOE_CLEARANCE_M of the
+        passage's shape, or that end on the lane the passage ends on. SUMO also lists passages
+        into the other lanes of the road a right turn enters, which it never crosses."""
+        foes = self._foes.get(via_lane_id)
+        if foes is None:
+            from shapely import LineString, unary_union
+
+            ls, lane, found, chain = self._ls, via_lane_id, set(), []
+            for _ in range(4):
+                found.update(ls.lane.getInternalFoes(lane))
+                chain.append(lane)
+                nxt = [k[0] for k in ls.lane.getLinks(lane)]
+                if not nxt or not nxt[0].startswith(":"):
+                    break
+                lane = nxt[0]
+            own_end = nxt[0] if nxt else ""
+            path = unary_union([LineString(ls.lane.getShape(x)) for x in chain])
+            path = path.buffer(FOE_CLEARANCE_M)
+            keep = set()
+            for f in found:
+                ends = {k[0] for k in ls.lane.getLinks(f)}
+                shape = ls.lane.getShape(f)
+                if own_end in ends or (len(shape) > 1 and path.intersects(LineString(shape))):
+                    keep.add(f)
+            foes = self._foes[via_lane_id] = frozenset(keep)
+        return foes
 
     def lane(self, lane_id: str) -> Lane:
         lane = self._lanes.get(lane_id)
@@ -266,6 +301,7 @@ class Sumo:
         self.net = Network(libsumo)
         self.TraCIException = libsumo.TraCIException
         self._ego_regards_decel = True  # the ego's speed mode is 31 (SUMO's default)
+        self._ego_strategic_only = False  # its lane-change mode is 1621 (SUMO's default)
 
     # ------------------------------------------------------------------ network
 
@@ -373,6 +409,7 @@ class Sumo:
         (at most 50 steps); False, and nothing left behind, if SUMO could not insert it."""
         ls = self._ls
         self._ego_regards_decel = True  # a new vehicle starts with speed mode 31
+        self._ego_strategic_only = False  # ... and lane-change mode 1621
         ls.route.add(f"r_ego{attempt}", route)
         ls.vehicle.add(
             EGO_ID,
@@ -476,6 +513,16 @@ class Sumo:
             self._ls.vehicle.setSpeedMode(EGO_ID, 31 if regard_decel else 27)
             self._ego_regards_decel = regard_decel
         self._ls.vehicle.setSpeed(EGO_ID, speed_mps)
+
+    def set_ego_lane_changes(self, strategic_only: bool) -> None:
+        """SUMO's default lane-change mode (1621), or only the changes the route needs (1537:
+        strategic, respecting others; no cooperative, speed-gain or keep-right change). A
+        continuous lane change at standstill turns the standing car's box up to ~40 degrees
+        and leaves it so (SUMO's angle follows movement), its rear in the next lane: a SUMO
+        car there drove into it (boulevard-long-04, "v18", drive eval of issue 38)."""
+        if strategic_only != self._ego_strategic_only:
+            self._ls.vehicle.setLaneChangeMode(EGO_ID, 1537 if strategic_only else 1621)
+            self._ego_strategic_only = strategic_only
 
     def take_over_ego(self) -> None:
         """An external controller drives from now on: SUMO applies speeds as given (speed mode 0)

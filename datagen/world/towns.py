@@ -692,6 +692,20 @@ def network_sha256(path: Path) -> str:
     return _file_sha256(str(Path(path).resolve()), st.st_size, st.st_mtime_ns)
 
 
+def held_out_town_of(path: Path) -> str | None:
+    """The held-out town (HELD_OUT_TOWNS) whose network `path` is (a copy of its cached file,
+    gzipped or not, under any name), else None. Builds the held-out towns if not cached."""
+    path = Path(path)
+    mine = {network_sha256(path)}
+    if _opener(path) is gzip.open:
+        with gzip.open(path, "rb") as f:
+            mine.add(hashlib.sha256(f.read()).hexdigest())
+    for name in HELD_OUT_TOWNS:
+        if network_sha256(town_net_path(name)) in mine:
+            return name
+    return None
+
+
 @functools.lru_cache(maxsize=64)
 def _file_sha256(path: str, size: int, mtime_ns: int) -> str:
     h = hashlib.sha256()

@@ -28,11 +28,15 @@ PED_REMOVE_M = 260.0
 
 
 def edges_near(xy: np.ndarray, lens: np.ndarray, centre, r0: float, r1: float) -> np.ndarray:
-    """Indices of edges longer than 5 m whose middle `xy` (E, 2) lies r0..r1 m from centre."""
+    """Indices of edges longer than 5 m whose middle `xy` (E, 2) lies r0..r1 m from centre and
+    no part of which (half its length around the middle) comes closer than r0: a vehicle
+    spawned anywhere on a long edge starting at the ego appeared 3 m in front of it
+    (boulevard-long-04, "v176", drive eval of issue 38)."""
     if len(xy) == 0:
         return np.zeros(0, dtype=int)
     dist = np.hypot(xy[:, 0] - centre[0], xy[:, 1] - centre[1])
-    return np.flatnonzero((dist >= r0) & (dist <= r1) & (lens > 5.0))
+    near = dist - 0.5 * lens if r0 > 0.0 else dist
+    return np.flatnonzero((near >= r0) & (dist <= r1) & (lens > 5.0))
 
 
 def lane_km_near(roads: Roads, centre, radius: float) -> tuple[float, float]:

@@ -95,6 +95,7 @@ STOP_FOE_CHECK_M = 10.0  # within this of a stop line the expert reads its junct
 # record() drops the frames of the last 5 s before an ego collision: more than the 2 s of future
 # waypoints a frame is labelled with plus ~3 s of approach, so no frame shows driving into it.
 COLLISION_DROP_S = 5.0
+SLOW_LANE_CHANGE_MPS = 1.0  # slower than this the expert ego changes lanes only for its route
 
 _log = logging.getLogger(__name__)
 _open_world: World | None = None  # libsumo runs one simulation per process
@@ -122,6 +123,9 @@ class WorldConfig:
             the next point of the sparse route plan (Sec. III-A's route goal, as TransFuser's:
             junction entries and exits and every 50 m, lane-independent), or "dense", a point
             30 m ahead along the ego's lane path (5 m into the exit lane near a junction).
+        end_on_collision: an ego collision ends the expert's episode ("collision"; the data's
+            rule). False: it drives on and the caller scores it (drive eval, as the
+            leaderboard drives on after a collision).
     """
 
     net_path: Path
@@ -136,6 +140,7 @@ class WorldConfig:
     ego_route: tuple[str, ...] | None = None
     ego_driver: str = "expert"
     target_point: str = "sparse"
+    end_on_collision: bool = True
 
 
 EGO_DRIVERS = ("expert", "external")
@@ -369,7 +374,7 @@ class World:
         stop_d = sig.stop_distance_m
         if stop_d is not None and sig.stop_junction and stop_d < STOP_FOE_CHECK_M:
             stop_foe = perception.foe_eta_s(
-                self._snap.agents, self._net, sig.stop_junction, ego.road_id
+                self._snap.agents, self._net, sig.stop_junction, ego.road_id, foes=self._stop_foes()
             )
         green_left = None
         b = self.profile.ego_comfort_decel_mps2  # from where it can still stop comfortably
@@ -394,6 +399,12 @@ class World:
             green_left_s=green_left,
             stop_foe_eta_s=stop_foe,
         )
+
+    def _stop_foes(self) -> frozenset[str] | None:
+        """Internal lanes of passages that conflict with the ego's through its next stop sign
+        (sumo.Network.internal_foes); None without one."""
+        via = next((k.via_lane_id for k in self._snap.links if k.state in ("s", "w")), "")
+        return self._net.internal_foes(via) if via else None
 
     def _set_route(self, edges: list[str] | tuple[str, ...]) -> None:
         """Cache the ego's route and the length of each of its suffixes."""
@@ -440,6 +451,8 @@ class World:
         inp = self._expert_input()
         dec = expert.decide(inp, p, EGO_DECEL_SLACK * p.ego_comfort_decel_mps2)
         self._target, reason = dec.target_speed_mps, dec.reason
+        # no lane change but the route's while (nearly) standing (sumo.set_ego_lane_changes)
+        sumo.set_ego_lane_changes(strategic_only=v0 < SLOW_LANE_CHANGE_MPS)
         if dec.brake_mps2 > 0.0:  # an emergency: brake harder than the vType's decel
             v_cmd = max(dec.target_speed_mps, v0 - dec.brake_mps2 * dt)
             sumo.set_ego_speed(v_cmd, regard_decel=False)
@@ -453,7 +466,8 @@ class World:
         # --- what happened in the step
         events = sumo.events()
         for c in self._new_collisions(events):
-            self._end("collision", f"{c.collider} hit {c.victim} ({c.kind}) on {c.lane_id}")
+            if self.config.end_on_collision:
+                self._end("collision", f"{c.collider} hit {c.victim} ({c.kind}) on {c.lane_id}")
         st.teleports += len(events.teleported)
         if EGO_ID in events.teleported:
             self._end("teleported", "SUMO teleported the jammed ego")
@@ -479,7 +493,7 @@ class World:
         ):
             self._stop_wait_s += dt
             if self._stop_wait_s >= expert.STOP_WAIT_S and perception.junction_clear(
-                snap.agents, self._signals.stop_junction, self._is_kerb
+                snap.agents, self._signals.stop_junction, self._is_kerb, self._stop_foes()
             ):
                 self._stop_done_lane = lane1
         else:
