@@ -203,21 +203,22 @@ class TrainConfig:
     lambda_m: float = 0.2
     lambda_tf: float = 0.1
     lambda_wc: float = 0.1
-    # Ours: weight of the camera-only traffic-rule term (ModelConfig.camera_traffic), as much as
-    # the traffic head's own.
+    # Ours: weight of the camera-only traffic-rule term (ModelConfig.camera_traffic; only with
+    # it), as much as the traffic head's own.
     lambda_camera_tf: float = 0.1
     # Cross-entropy weights of the BEV classes (other, drivable, lane marking): ours. Markings
-    # are ~8 % of the pixels at R = 64 (3 % at 256; measured on an 8-town build), and with equal
-    # weights the tiny model never predicted them on a held-out town (lane IoU 0.00).
+    # are ~8 % of the pixels at R = 64 (3 % at 256); with equal weights the tiny model predicted
+    # none on a held-out town (docs/learning.md, "BEV weights 1-1-1").
     bev_class_weights: tuple[float, ...] = (1.0, 1.0, 3.0)
     # Positive-class weights of L_light and L_sign (BCE pos_weight): ours. A red light governs
     # ~15-25 % of the frames and a stop sign fewer; unweighted, the tiny model's red-light head
-    # flipped to "never red" on a held-out town (F1 0.77 at epochs 1 and 3, 0.00 at the end).
+    # ended at "never red" on a held-out town (docs/learning.md, "BEV weights 1-1-1").
     traffic_pos_weight: tuple[float, float] = (3.0, 3.0)
-    # Ours: frames where the ego's speed contradicts the traffic label's usual context (red
-    # light or stop sign while moving, neither while stopped) weigh this much in L_light and
-    # L_sign (losses.context_weights), against the "stopped means red" shortcut; 1 = off.
-    traffic_context_weight: float = 1.0  # off: 3 measured worse (held-out red F1 0.33 vs 0.47)
+    # Ours, in neither architecture: frames where the ego's speed contradicts the traffic
+    # label's usual context (red light or stop sign while moving, neither while stopped) weigh
+    # this much in L_light and L_sign (losses.context_weights); 1 = off (3 measured worse:
+    # docs/learning.md).
+    traffic_context_weight: float = 1.0
     alpha: float = 1.0
     beta: float = 1.0
     gamma: float = 1.0
