@@ -202,6 +202,10 @@ def train_seed(args, seed: int, run: Path) -> float | None:
     """Fit and evaluate one seed into `run` (OUT/sN); `train fit`'s wall seconds, or None when
     --resume found the seed finished. Writes run/learn.json (seed, arch, towns, fit seconds)."""
     done = run / "learn.json"
+    if args.resume and done.is_file():
+        old = json.loads(done.read_text())
+        if (old["arch"], old["val_towns"]) != (args.arch, args.val_towns):
+            sys.exit(f"{run}: trained with --arch {old['arch']} --val-towns {old['val_towns']}")
     if args.resume and done.is_file() and (run / "eval.json").is_file():
         print(f"seed {seed}: done ({run})")
         return json.loads(done.read_text())["fit_s"]
