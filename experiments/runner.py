@@ -1,6 +1,6 @@
 """The paper's experiments as one resumable pipeline of the project's own commands.
 
-    experiment run --preset small --out runs/exp        # ~75 min on 2 CPU cores
+    experiment run --preset small --out runs/exp        # ~85 min on 2 CPU cores
     experiment run --preset paper --out runs/paper --device cuda --nproc 8
     experiment run --preset small --out runs/exp --until fit-full   # stop after that step
 
@@ -101,7 +101,8 @@ PRESETS = {
     "minute": Preset(
         2, 40, 10.0, "downtown", "tiny", 1, ("full", "ours", "no_weather"), (0,), 1, 1, 8.0, 3, 16
     ),  # fmt: skip
-    # A 2-core CPU machine in about 75 min: the tiny model, one seed, short routes. 4 epochs:
+    # A 2-core CPU machine in about 85 min (73 measured for the seven paper rows; the ours row
+    # estimated from one row's share): the tiny model, one seed, short routes. 4 epochs:
     # with 2, held-out weather accuracy was 0.79 and ADE 1.29x constant velocity's; the same
     # data at epoch 4 of 6 gave 0.90 and 1.12x (issue 13's notes).
     "small": Preset(
