@@ -1,23 +1,30 @@
-"""Does II-DSU learn the scene? The issue-13 check: build 8 towns, train the tiny config with one
-town held out, and score the held-out town. Prints figures and the goals; asserts nothing.
+"""Does II-DSU learn the scene? The issue-13 check: build 8 towns, train the tiny config with
+towns held out, and score the held-out towns, for one or more training seeds. Prints figures
+and the goals; asserts nothing.
 
     python bench/learn.py                                  # 2,880 frames, 6 epochs (45 min here)
     python bench/learn.py --frames 8000 --epochs 10 --out runs/learn8k
     python bench/learn.py --data /tmp/d8 --reuse           # train again on an existing build
-    python bench/learn.py --eval-only runs/learn --compare old.eval.json   # table only
+    python bench/learn.py --data runs/d41 --reuse --val-towns downtown --seeds 0,1,2 \
+        --arch ours --out runs/learn-d41-ours             # 3 seeds: per seed, mean +- spread
+    python bench/learn.py --eval-only runs/learn/s0 --compare old.eval.json   # table only
 
 Steps (each a real command, so the figures are what a user gets):
-1. `datagen build --towns 8 --frames F --seed S --out DATA` unless DATA already holds a
-   complete build (with --reuse);
-2. `train fit --shards DATA --config tiny --epochs E --val-towns TOWN --out OUT`;
-3. `train eval --ckpt OUT/last.pt --shards DATA --split val` (the held-out town).
+1. `datagen build --towns 8 --frames F --seed S --out DATA` (without --reuse; with it, DATA
+   must already hold a complete build, which is never rebuilt);
+2. per training seed N: `train fit --shards DATA --config tiny --arch A --epochs E --val-towns
+   TOWNS --seed N --out OUT/sN`;
+3. `train eval --ckpt OUT/sN/last.pt --shards DATA --split val` (the held-out towns).
 
-The table: ADE/FDE of the model and of the constant-velocity baseline (goal: model ADE below
-0.8x the baseline's), weather accuracy (goal >= 95 %), red-light F1 (>= 0.8), BEV IoU per class
-(lane marking > 0), detection AP per timestep; then the per-epoch validation metrics from
-OUT/metrics.jsonl, the build's frames (goal <= 20k) and the training wall time (goal <= 1 h on
-a 2-core machine). `--compare JSON` adds a column from another `train eval` JSON (e.g. the
-same check on an older commit).
+Per seed the table: ADE/FDE of the model and of the constant-velocity baseline (goal: model ADE
+below 0.8x the baseline's), weather accuracy (goal >= 95 %), red-light F1 (>= 0.8), BEV IoU
+per class (lane marking > 0), detection AP per timestep; then the per-epoch validation metrics
+from OUT/sN/metrics.jsonl, the build's frames (goal <= 20k) and the training wall time (goal
+<= 1 h on a 2-core machine). With several seeds, a last table gives each figure per seed, its
+mean and spread (sample standard deviation, and min-max), and OUT/summary.json holds them.
+`--resume` keeps the seeds that finished (OUT/sN/learn.json) and continues an interrupted fit.
+`--compare JSON` adds a column from another `train eval` JSON (e.g. the same check on an older
+commit).
 """
 
 from __future__ import annotations
@@ -101,15 +108,15 @@ def table(result: dict, compare: dict | None) -> str:
     return "\n".join(lines)
 
 
-def kinematic_baselines(data: Path, town: str) -> dict[str, float]:
-    """ADE (m) on `town`'s frames that have a frame 0.5 s before in their episode, of constant
+def kinematic_baselines(data: Path, towns: list[str]) -> dict[str, float]:
+    """ADE (m) on `towns`' frames that have a frame 0.5 s before in their episode, of constant
     velocity (what `train eval` reports over all frames) and of constant acceleration from the
     speed 0.5 s before (never a model input: how much of the waypoints is ego dynamics alone)."""
     import numpy as np
     import pyarrow.parquet as pq
 
     cols = ["episode_id", "time_s", "ego_speed", "waypoints"]
-    filters = [("town", "==", town)]
+    filters = [("town", "in", towns)]
     t = pq.ParquetDataset(shard_files(data), filters=filters).read(columns=cols).to_pandas()
     t = t.sort_values(["episode_id", "time_s"]).reset_index(drop=True)
     wp = np.stack([np.asarray(w, dtype=np.float64).reshape(-1, 2) for w in t.waypoints])
@@ -146,39 +153,82 @@ def epochs_table(run: Path) -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=ROOT / "runs" / "learn-data")
-    parser.add_argument("--frames", type=int, default=2880, help="frames to build (<= 20k)")
-    parser.add_argument("--seed", type=int, default=21)
-    parser.add_argument(
-        "--episode-seconds", type=float, default=None, help="per episode (datagen's default)"
-    )
-    parser.add_argument("--val-town", default="arterial")
-    parser.add_argument("--epochs", type=int, default=6)
-    parser.add_argument("--workers", type=int, default=2, help="build processes")
-    parser.add_argument("--out", type=Path, default=ROOT / "runs" / "learn")
-    parser.add_argument("--reuse", action="store_true", help="keep a complete build in --data")
-    parser.add_argument("--eval-only", type=Path, metavar="RUN", help="print RUN's table only")
-    parser.add_argument("--compare", type=Path, metavar="JSON", help="another eval JSON")
-    parser.add_argument("--fit-arg", action="append", default=[], help="extra train fit flag")
-    args = parser.parse_args()
+SUMMARY = (
+    "ade_m", "cv_ade_m", "ade_ratio", "weather_accuracy", "red_light_f1", "stop_sign_f1",
+    "camera_red_light_f1", "iou_lane_marking", "miou", "det_map_t", "det_map_t+0.5s",
+    "det_map_t+1.0s", "fit_min",
+)  # fmt: skip
+"""The figures of the seeds' table, in order (fit_min: `train fit`'s wall time, minutes)."""
 
-    run, fit_s = args.eval_only, None
-    if run is None:
-        run = args.out
-        if not (args.reuse and _built(args.data)):
-            build = ["datagen.cli", "build", "--towns", "8", "--frames", str(args.frames)]
-            build += ["--seed", str(args.seed), "--workers", str(args.workers), "--force"]
-            if args.episode_seconds is not None:  # shorter episodes: more towns x weathers
-                build += ["--episode-seconds", str(args.episode_seconds)]
-            _run([*build, "--out", str(args.data), "--no-progress"])
-        fit = ["training.cli", "fit", "--shards", str(args.data), "--config", "tiny"]
-        fit += ["--epochs", str(args.epochs), "--val-towns", args.val_town, "--out", str(run)]
-        fit += ["--force"]  # a fresh run, whatever an earlier one left in --out
-        fit_s = _run([*fit, "--device", "cpu", *args.fit_arg])
-        ev = ["training.cli", "eval", "--ckpt", str(run / "last.pt"), "--shards", str(args.data)]
-        _run([*ev, "--split", "val", "--device", "cpu", "--out", str(run / "eval.json")])
+
+def spread(values: list[float]) -> dict[str, float]:
+    """Mean, sample standard deviation (0 for one value), min and max of `values`."""
+    import numpy as np
+
+    v = np.asarray(values, dtype=np.float64)
+    std = float(v.std(ddof=1)) if len(v) > 1 else 0.0
+    return {"mean": float(v.mean()), "std": std, "min": float(v.min()), "max": float(v.max())}
+
+
+def seeds_table(per_seed: dict[int, dict]) -> tuple[str, dict]:
+    """The text table of SUMMARY's figures per seed with mean +- std [min, max], and the same as
+    a dict (figure -> {"seeds": {seed: value}, "mean", "std", "min", "max"})."""
+    seeds = sorted(per_seed)
+    head = f"{'':<20}" + "".join(f"{f's{s}':>9}" for s in seeds) + "   mean +- std   [min, max]"
+    lines, out = [head], {}
+    for key in SUMMARY:
+        values = {s: per_seed[s].get(key) for s in seeds}
+        if all(v is None for v in values.values()):
+            continue
+        row = f"{key:<20}" + "".join(f"{_fmt(v):>9}" for v in values.values())
+        known = [v for v in values.values() if v is not None]
+        st = spread(known)
+        out[key] = {"seeds": {str(s): v for s, v in values.items()}, **st}
+        row += f"   {st['mean']:.4f} +- {st['std']:.4f}   [{st['min']:.4f}, {st['max']:.4f}]"
+        lines.append(row)
+    return "\n".join(lines), out
+
+
+def _fit_done(run: Path, epochs: int) -> bool:
+    """`run` holds a checkpoint of all `epochs`."""
+    if not (run / "last.pt").is_file():
+        return False
+    from training.checkpoint import load_checkpoint
+
+    return int(load_checkpoint(run / "last.pt").get("epoch", 0)) >= epochs
+
+
+def train_seed(args, seed: int, run: Path) -> float | None:
+    """Fit and evaluate one seed into `run` (OUT/sN); `train fit`'s wall seconds, or None when
+    --resume found the seed finished. Writes run/learn.json (seed, arch, towns, fit seconds)."""
+    done = run / "learn.json"
+    if args.resume and done.is_file():
+        old = json.loads(done.read_text())
+        if (old["arch"], old["val_towns"]) != (args.arch, args.val_towns):
+            sys.exit(f"{run}: trained with --arch {old['arch']} --val-towns {old['val_towns']}")
+    if args.resume and done.is_file() and (run / "eval.json").is_file():
+        print(f"seed {seed}: done ({run})")
+        return json.loads(done.read_text())["fit_s"]
+    fit = ["training.cli", "fit", "--shards", str(args.data), "--config", "tiny"]
+    fit += ["--arch", args.arch, "--epochs", str(args.epochs), "--val-towns", args.val_towns]
+    fit += ["--seed", str(seed), "--out", str(run), "--device", "cpu", *args.fit_arg]
+    fit_s = 0.0
+    if args.resume and (run / "last.pt").is_file():
+        previous = json.loads(done.read_text())["fit_s"] if done.is_file() else 0.0
+        if not _fit_done(run, args.epochs):
+            fit_s = _run([*fit, "--resume"])
+        fit_s += previous
+    else:
+        fit_s = _run([*fit, "--force"])  # a fresh run, whatever an earlier one left in run
+    record = {"seed": seed, "arch": args.arch, "val_towns": args.val_towns, "fit_s": fit_s}
+    done.write_text(json.dumps(record) + "\n")  # before eval: a resume keeps the fit's time
+    ev = ["training.cli", "eval", "--ckpt", str(run / "last.pt"), "--shards", str(args.data)]
+    _run([*ev, "--split", "val", "--device", "cpu", "--out", str(run / "eval.json")])
+    return fit_s
+
+
+def _report(args, run: Path, fit_s: float | None) -> dict:
+    """Print one run's tables; its headline figures (plus fit_min)."""
     evals = [p for p in (run / "eval.json", run / "last.eval.json") if p.is_file()]
     if not evals:
         sys.exit(f"{run}: no eval.json (run `train eval --ckpt {run}/last.pt ...` first)")
@@ -186,21 +236,90 @@ def main() -> None:
     compare = json.loads(args.compare.read_text()) if args.compare else None
     print()
     print(table(result, compare))
-    if args.eval_only is None or args.data.is_dir():
-        k = kinematic_baselines(args.data, args.val_town)
-        print(
-            f"\nego dynamics on {args.val_town} ({k['frames']} frames with one 0.5 s before): "
-            f"constant velocity ADE {k['cv_ade_m']:.3f} m, constant acceleration from the speed "
-            f"0.5 s before {k['ca_ade_m']:.3f} m (not a model input: a model given its past "
-            "speeds could beat the ADE goal by extrapolation alone)"
-        )
     print(epochs_table(run))
+    figures = headline(result)
     if fit_s is not None:
-        frames = _built(args.data)
+        figures["fit_min"] = fit_s / 60
         print(
-            f"\nbuild: {frames} frames (goal <= 20000); train fit: {fit_s / 60:.1f} min "
-            f"(goal <= 60 on 2 cores; this machine is shared, so wall time is an upper bound)"
+            f"\nbuild: {_built(args.data)} frames (goal <= 20000); train fit: {fit_s / 60:.1f} "
+            "min (goal <= 60 on 2 cores; this machine is shared, so wall time is an upper bound)"
         )
+    return figures
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=ROOT / "runs" / "learn-data")
+    parser.add_argument("--frames", type=int, default=2880, help="frames to build (<= 20k)")
+    parser.add_argument("--seed", type=int, default=21, help="the build's seed")
+    parser.add_argument(
+        "--episode-seconds", type=float, default=None, help="per episode (datagen's default)"
+    )
+    parser.add_argument(
+        "--val-towns", default="arterial", metavar="A,B", help="held-out towns (comma-separated)"
+    )
+    parser.add_argument(
+        "--seeds",
+        type=lambda text: [int(x) for x in text.split(",") if x],
+        default=[0],
+        metavar="N,M",
+        help="training seeds, one fit each into OUT/sN (0)",
+    )
+    parser.add_argument(
+        "--arch", choices=("paper", "ours"), default="paper", help="train fit --arch (paper)"
+    )
+    parser.add_argument("--epochs", type=int, default=6)
+    parser.add_argument("--workers", type=int, default=2, help="build processes")
+    parser.add_argument("--out", type=Path, default=ROOT / "runs" / "learn")
+    parser.add_argument(
+        "--reuse", action="store_true", help="use the complete build in --data; never rebuild"
+    )
+    parser.add_argument(
+        "--resume", action="store_true", help="keep finished seeds, continue interrupted fits"
+    )
+    parser.add_argument("--eval-only", type=Path, metavar="RUN", help="print RUN's table only")
+    parser.add_argument("--compare", type=Path, metavar="JSON", help="another eval JSON")
+    parser.add_argument("--fit-arg", action="append", default=[], help="extra train fit flag")
+    args = parser.parse_args()
+    towns = [t for t in args.val_towns.split(",") if t]
+
+    if args.eval_only is not None:
+        _report(args, args.eval_only, None)
+        if args.data.is_dir():
+            _print_baselines(args.data, towns)
+        return
+    if args.reuse and not _built(args.data):
+        sys.exit(f"{args.data}: no complete build (--reuse never rebuilds; wait for it or drop it)")
+    if not args.reuse:
+        build = ["datagen.cli", "build", "--towns", "8", "--frames", str(args.frames)]
+        build += ["--seed", str(args.seed), "--workers", str(args.workers), "--force"]
+        if args.episode_seconds is not None:  # shorter episodes: more towns x weathers
+            build += ["--episode-seconds", str(args.episode_seconds)]
+        _run([*build, "--out", str(args.data), "--no-progress"])
+    per_seed = {}
+    for seed in args.seeds:
+        run = args.out / f"s{seed}"
+        fit_s = train_seed(args, seed, run)
+        print(f"\n=== seed {seed} ({args.arch}, held out: {args.val_towns}): {run}")
+        per_seed[seed] = _report(args, run, fit_s)
+    _print_baselines(args.data, towns)
+    text, summary = seeds_table(per_seed)
+    print(f"\n=== {args.arch}, {len(per_seed)} seed(s), held out: {args.val_towns}, {args.data}")
+    print(text)
+    record = {"arch": args.arch, "val_towns": towns, "data": str(args.data), "epochs": args.epochs}
+    record |= {"fit_args": args.fit_arg, "figures": summary}
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "summary.json").write_text(json.dumps(record, indent=1) + "\n")
+
+
+def _print_baselines(data: Path, towns: list[str]) -> None:
+    k = kinematic_baselines(data, towns)
+    print(
+        f"\nego dynamics on {', '.join(towns)} ({k['frames']} frames with one 0.5 s before): "
+        f"constant velocity ADE {k['cv_ade_m']:.3f} m, constant acceleration from the speed "
+        f"0.5 s before {k['ca_ade_m']:.3f} m (not a model input: a model given its past "
+        "speeds could beat the ADE goal by extrapolation alone)"
+    )
 
 
 if __name__ == "__main__":

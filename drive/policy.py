@@ -101,13 +101,12 @@ class ModelPolicy:
         pose = frame.ego.pose
         tp = pose.ego_from_world(np.array([frame.target_point_xy_m]))[0]
         dev = self.device
-        m = self.model
         speed = torch.tensor([frame.ego.speed_mps], dtype=torch.float32, device=dev)
         with torch.no_grad(), autocast(dev):
-            # IIDSU.forward's planning branch only: the dense heads are not needed to drive
-            f = m.encode(
-                torch.from_numpy(image)[None].to(dev), torch.from_numpy(lidar)[None].to(dev), speed
+            waypoints = self.model.plan(  # (1, 4, 2); the paper's model or ours alike
+                torch.from_numpy(image)[None].to(dev),
+                torch.from_numpy(lidar)[None].to(dev),
+                speed,
+                torch.tensor(tp[None], dtype=torch.float32, device=dev),
             )
-            target = torch.tensor(tp[None], dtype=torch.float32, device=dev)
-            waypoints = m.heads["planning"](m.eca["planning"](f), target, speed)  # (1, 4, 2)
         return waypoints[0].float().cpu().numpy().astype(np.float64)

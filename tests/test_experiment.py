@@ -24,6 +24,17 @@ def experiment(tmp_path_factory):
     return out, first, second, report.read_text()
 
 
+def test_table_iii_rows_are_the_papers_architecture_and_ours_one_extra_row(tmp_path):
+    fits = {
+        s.name: s.argv for s in runner.steps(runner.PRESETS["small"], tmp_path, "cpu", 1)
+        if s.name.startswith("fit-")
+    }  # fmt: skip
+    assert len(fits) == 8
+    for name, argv in fits.items():
+        arch = argv[argv.index("--arch") + 1]
+        assert arch == ("ours" if name == "fit-ours-s0" else "paper"), name
+
+
 def test_rerun_skips_the_finished_steps_and_runs_the_rest(experiment):
     out, first, second, _ = experiment
     assert first == ["run  build", "run  fit-full-s0", "stopped after fit-full-s0"]
@@ -58,6 +69,10 @@ def test_report_has_every_table_with_the_presets_rows(experiment):
     assert "- All tasks: [" in paired  # the worst route's video, recorded
     seen_routes = json.loads((out / "routes" / "seen.json").read_text())["routes"]
     assert seen_routes and all(r["town"] != "downtown" for r in seen_routes)
+    # the paper's architecture in every row of the paper's, ours beside it and named so
+    assert "| Ours (All tasks + our additions) | 1 | 1 |" in held
+    assert "*paper: Ours" not in held
+    assert "The row *Ours*" in text and "Not the paper's claim, ours:" in text
     table2 = text.split("## Table II:")[1].split("## Weather swap")[0]
     for head in ("det&pred", "BEV", "traffic", "weather"):
         assert f"| plan x {head} |" in table2
@@ -65,6 +80,7 @@ def test_report_has_every_table_with_the_presets_rows(experiment):
     assert "| full-s0 | 3 |" in swap and "| no_weather-s0 | 3 |" in swap
     open_loop = text.split("## Open loop")[1].split("## Data and compute")[0]
     assert "| full-s0 |" in open_loop and "| no_weather-s0 |" in open_loop
+    assert "| ours-s0 |" in open_loop
     assert "undecided (too few samples" in text  # one route and three frames decide nothing
 
 

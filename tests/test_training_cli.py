@@ -129,3 +129,34 @@ def test_user_mistakes_give_one_line_and_exit_2(case, tmp_path, run, capsys):
     err = capsys.readouterr().err
     assert status == 2
     assert message in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+def test_fit_builds_the_papers_model_by_default_and_ours_with_one_flag(run, tmp_path):
+    from training.checkpoint import load_checkpoint
+    from training.config import OURS_MODEL, ModelConfig, TrainConfig, architecture
+
+    shards, out = run
+    state = load_checkpoint(out / "last.pt")
+    paper = ModelConfig.from_dict(state["model_config"])
+    assert architecture(paper, TrainConfig.from_dict(state["train_config"])) == "paper"
+    # ours, with one addition switched back off on its own
+    ours = tmp_path / "ours"
+    argv = ["fit", "--shards", str(shards), "--config", "tiny", "--arch", "ours", "--epochs", "1"]
+    assert main(argv + ["--no-planner-speed", "--workers", "0", "--out", str(ours)]) == 0
+    state = load_checkpoint(ours / "last.pt")
+    model_cfg = ModelConfig.from_dict(state["model_config"])
+    assert model_cfg.additions == tuple(k for k in OURS_MODEL if k != "planner_speed")
+    assert TrainConfig.from_dict(state["train_config"]).zoom_out == 0.55
+    assert main(["eval", "--ckpt", str(ours / "last.pt"), "--shards", str(shards)]) == 0
+    # one addition on the paper's model
+    argv = ["fit", "--shards", str(shards), "--config", "tiny", "--planner-speed", "--epochs", "2"]
+    assert main(argv + ["--workers", "0", "--out", str(tmp_path / "one"), "--seed", "3"]) == 0
+    cfg = ModelConfig.from_dict(load_checkpoint(tmp_path / "one" / "last.pt")["model_config"])
+    assert architecture(cfg) == "paper + planner_speed"
+
+
+def test_resume_refuses_another_architecture(run, tmp_path, capsys):
+    _, out = run
+    assert main(["fit", "--resume", "--out", str(out), "--arch", "ours", "--epochs", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "--arch and the model flags must match the checkpoint's" in err

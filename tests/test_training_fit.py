@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from training import curves, data, fit
-from training.config import PRESETS
+from training.config import PRESETS, preset
 from training.errors import UserError
 from training.losses import loss_terms
 
@@ -141,8 +141,9 @@ def test_fit_logs_every_term_to_jsonl_and_tensorboard(shards, tmp_path):
         "tensorboard.backend.event_processing.event_accumulator"
     )
     out = tmp_path / "run"
-    fit.fit(TINY_MODEL, _train_cfg(shards, out, epochs=2))
-    terms = set(loss_terms(TINY_MODEL.heads, TINY_MODEL.has_camera_traffic))
+    ours = preset("tiny", "ours")[0]  # every term, ours' camera-only traffic term too
+    fit.fit(ours, _train_cfg(shards, out, epochs=2))
+    terms = set(loss_terms(ours.heads, ours.has_camera_traffic))
     assert "camera_tf" in terms
     steps = [json.loads(line) for line in (out / fit.STEPS).read_text().splitlines()]
     assert [s["step"] for s in steps] == [3, 6]  # the last step of each epoch (3 per epoch)

@@ -6,11 +6,12 @@ import torch
 
 from tests.synthetic import write_shards
 from training import data
-from training.config import PRESETS, TrainConfig
+from training.config import PRESETS, TrainConfig, preset
 from training.losses import compute_losses, loss_terms
 from training.model import IIDSU, INPUTS
 
-TINY, PAPER = PRESETS["tiny"][0], PRESETS["paper"][0]
+TINY, PAPER = PRESETS["tiny"][0], PRESETS["paper"][0]  # the paper's architecture
+OURS = preset("tiny", "ours")[0]  # the paper's plus the additions of ours, tiny
 
 
 def _inputs(batch: int, device: str = "cpu"):
@@ -28,21 +29,22 @@ def _shapes(out: dict) -> dict:
 
 
 def test_tiny_heads_have_paper_layout():
-    out = IIDSU(TINY)(*_inputs(2))
     R = TINY.output_px
-    assert _shapes(out) == {
+    paper = {
         "planning": (2, 4, 2),
         "detection": (2, 21, R, R),
         "bev": (2, 3, R, R),
         "traffic": (2, 2),
         "weather": (2, 4),
-        "camera_traffic": (2, 2),  # ours: the traffic rule from the camera encoder alone
     }
+    assert _shapes(IIDSU(TINY)(*_inputs(2))) == paper
+    # ours adds the traffic rule from the camera encoder alone
+    assert _shapes(IIDSU(OURS)(*_inputs(2))) == {**paper, "camera_traffic": (2, 2)}
 
 
 def test_camera_traffic_head_sees_the_camera_alone():
     torch.manual_seed(0)
-    model = IIDSU(TINY).eval()
+    model = IIDSU(OURS).eval()
     image, lidar, speed, target = _inputs(2)
     image = torch.randint(0, 256, image.shape, dtype=torch.uint8)
     other_lidar = torch.randint(0, 6, lidar.shape, dtype=torch.uint8)
@@ -61,11 +63,11 @@ def test_camera_traffic_head_goes_with_the_traffic_head_and_old_checkpoints_lack
     from training.config import ModelConfig
 
     for cfg in (
-        dataclasses.replace(TINY, camera_traffic=False),
-        dataclasses.replace(TINY, traffic=False),  # "No Traffic Rule" learns no rule elsewhere
+        dataclasses.replace(OURS, camera_traffic=False),
+        dataclasses.replace(OURS, traffic=False),  # "No Traffic Rule" learns no rule elsewhere
     ):
         assert "camera_traffic" not in IIDSU(cfg)(*_inputs(1))
-    old = {k: v for k, v in dataclasses.asdict(TINY).items() if k != "camera_traffic"}
+    old = {k: v for k, v in dataclasses.asdict(OURS).items() if k != "camera_traffic"}
     assert ModelConfig.from_dict(old).camera_traffic is False
 
 
@@ -87,21 +89,21 @@ def test_traffic_pool_keeps_a_one_cell_signal_that_the_mean_dilutes():
         assert delta[0, 0].item() == pytest.approx(gap + (8.0 / 64 if pool == "avgmax" else 0))
         assert delta[0, 1].item() == 0.0
     with pytest.raises(ValueError, match="traffic_pool"):
-        dataclasses.replace(TINY, traffic_pool="median")
+        dataclasses.replace(OURS, traffic_pool="median")
 
 
 def test_old_checkpoints_load_with_mean_pooled_traffic_heads_and_no_lamp_maps():
     from training.checkpoint import model_from_checkpoint
     from training.config import ModelConfig
 
-    assert TINY.traffic_pool == "avgmax" and TINY.lamp_channels == 8 and TINY.traffic_residual
-    assert TINY.pixel_lamp_channels == 8
+    assert OURS.traffic_pool == "avgmax" and OURS.lamp_channels == 8 and OURS.traffic_residual
+    assert OURS.pixel_lamp_channels == 8
     old_cfg = dataclasses.replace(
-        TINY, traffic_pool="avg", lamp_channels=0, pixel_lamp_channels=0, traffic_residual=False
+        OURS, traffic_pool="avg", lamp_channels=0, pixel_lamp_channels=0, traffic_residual=False
     )
     old = IIDSU(old_cfg)
-    assert old.lamp is None and old.pixel_lamp is None
-    assert old.camera_traffic.fc.in_features == TINY.dims[-1]
+    assert old.lamps is None
+    assert old.camera_traffic.fc.in_features == OURS.dims[-1]
     new = ("traffic_pool", "lamp_channels", "pixel_lamp_channels", "traffic_residual")
     saved = {k: v for k, v in dataclasses.asdict(old_cfg).items() if k not in new}
     assert ModelConfig.from_dict(saved) == old_cfg
@@ -117,7 +119,7 @@ def test_fused_traffic_head_corrects_the_camera_heads_logits():
     torch.manual_seed(0)
     image, lidar, speed, target = _inputs(2)
     image = torch.randint(0, 256, image.shape, dtype=torch.uint8)
-    model = IIDSU(TINY).eval()
+    model = IIDSU(OURS).eval()
     with torch.no_grad():
         out = model(image, lidar, speed, target)
         own = model.heads["traffic"](model.eca["traffic"](model.encode(image, lidar, speed)))
@@ -128,8 +130,8 @@ def test_fused_traffic_head_corrects_the_camera_heads_logits():
     assert torch.equal(out["traffic"], out["camera_traffic"])
     # the paper's form (flag off), and off without the camera head it would add
     for cfg in (
-        dataclasses.replace(TINY, traffic_residual=False),
-        dataclasses.replace(TINY, camera_traffic=False),
+        dataclasses.replace(OURS, traffic_residual=False),
+        dataclasses.replace(OURS, camera_traffic=False),
     ):
         torch.manual_seed(0)
         model = IIDSU(cfg).eval()
@@ -144,7 +146,7 @@ def test_traffic_residual_dropout_drops_the_correction_in_training_only():
     torch.manual_seed(0)
     image, lidar, speed, target = _inputs(64)
     image = torch.randint(0, 256, image.shape, dtype=torch.uint8)
-    model = IIDSU(dataclasses.replace(TINY, traffic_residual_dropout=0.5))
+    model = IIDSU(dataclasses.replace(OURS, traffic_residual_dropout=0.5))
     with torch.no_grad():
         model.eval()
         kept = model(image, lidar, speed, target)
@@ -159,29 +161,29 @@ def test_traffic_residual_dropout_drops_the_correction_in_training_only():
     assert 0.3 < dropped.float().mean() < 0.7  # about half of 128 logits
     assert torch.allclose(got[~dropped], 2 * correction[~dropped], atol=1e-4)
     with pytest.raises(ValueError, match="traffic_residual_dropout"):
-        dataclasses.replace(TINY, traffic_residual_dropout=1.0)
+        dataclasses.replace(OURS, traffic_residual_dropout=1.0)
 
 
 def test_lamp_maps_keep_a_small_lamp_where_it_is_and_feed_f_dsu():
     torch.manual_seed(0)
-    cfg = dataclasses.replace(TINY, pixel_lamp_channels=0)  # the first stage's maps alone
+    cfg = dataclasses.replace(OURS, pixel_lamp_channels=0)  # the first stage's maps alone
     model = IIDSU(cfg).eval()
-    assert model.to_dsu.in_channels == 2 * TINY.dims[-1] + TINY.lamp_channels
+    assert model.to_dsu.in_channels == 2 * OURS.dims[-1] + OURS.lamp_channels
     image, lidar, speed, target = _inputs(1)
     lit = image.clone()
     lit[0, 0, 100:102, 200:202] = 255  # a 2x2 px red lamp: 32 px cells, row 3, column 6
     with torch.no_grad():
-        a = model._encode(image, lidar, speed, camera_alone=True)
-        b = model._encode(lit, lidar, speed, camera_alone=True)
+        a = model._encode(image, lidar, speed)
+        b = model._encode(lit, lidar, speed)
     changed = (a[1] - b[1]).abs().amax(dim=(0, 1)) > 0  # (8, 8) cells of the lamp maps
     assert changed[3, 6]
     rows, cols = torch.nonzero(changed, as_tuple=True)  # only cells the first stage reaches
     assert rows.min() >= 2 and rows.max() <= 3 and cols.min() >= 5 and cols.max() <= 6
     assert not torch.equal(a[0], b[0])  # F_DSU sees it
     with torch.no_grad():
-        model.lamp.weight.zero_()
-        model.lamp.bias.zero_()
-        c = model._encode(lit, lidar, speed, camera_alone=True)
+        model.lamps.stage.weight.zero_()
+        model.lamps.stage.bias.zero_()
+        c = model._encode(lit, lidar, speed)
     assert not c[1].any()
 
 
@@ -189,46 +191,46 @@ def test_pixel_lamp_maps_keep_a_one_pixel_lamp_in_its_cell():
     from training.config import ModelConfig
 
     torch.manual_seed(0)
-    cfg = dataclasses.replace(TINY, pixel_lamp_channels=4)  # the tiny config has 8
+    cfg = dataclasses.replace(OURS, pixel_lamp_channels=4)  # the tiny config has 8
     model = IIDSU(cfg).eval()
-    k = TINY.lamp_channels
-    assert model.to_dsu.in_channels == 2 * TINY.dims[-1] + k + 4
+    k = OURS.lamp_channels
+    assert model.to_dsu.in_channels == 2 * OURS.dims[-1] + k + 4
     assert model.camera_traffic.fc.in_features == 2 * (k + 4)  # avgmax pooling: two per map
     image, lidar, speed, target = _inputs(1)
     lit = image.clone()
     lit[0, 0, 100, 200] = 255  # one red pixel: 32 px cells, row 3, column 6
     with torch.no_grad():
-        a = model._encode(image, lidar, speed, camera_alone=True)
-        b = model._encode(lit, lidar, speed, camera_alone=True)
+        a = model._encode(image, lidar, speed)
+        b = model._encode(lit, lidar, speed)
     pixel = (a[1][0, k:] - b[1][0, k:]).abs().amax(dim=0) > 0  # (8, 8) cells of the pixel maps
     assert pixel[3, 6] and pixel.sum() == 1  # stride 1: no other cell sees that pixel
     assert not torch.equal(a[0], b[0])  # F_DSU sees it
     assert "camera_traffic" in model(lit, lidar, speed, target)
     # without stage lamp maps the camera-only head reads the pixel maps alone
     alone = IIDSU(dataclasses.replace(cfg, lamp_channels=0))
-    assert alone.camera_traffic.fc.in_features == 2 * 4 and alone.lamp is None
-    saved = {key: v for key, v in dataclasses.asdict(TINY).items() if key != "pixel_lamp_channels"}
+    assert alone.camera_traffic.fc.in_features == 2 * 4 and alone.lamps.stage is None
+    saved = {key: v for key, v in dataclasses.asdict(OURS).items() if key != "pixel_lamp_channels"}
     assert ModelConfig.from_dict(saved).pixel_lamp_channels == 0  # runs from before: off
     with pytest.raises(ValueError, match="pixel_lamp_channels"):
-        dataclasses.replace(TINY, pixel_lamp_channels=-1)
+        dataclasses.replace(OURS, pixel_lamp_channels=-1)
 
 
 def test_planner_reads_the_speed_and_old_checkpoints_load_without_it():
     from training.checkpoint import model_from_checkpoint
     from training.config import ModelConfig
 
-    head = IIDSU(TINY).heads["planning"]
-    f = torch.randn(2, TINY.feature_dim, 8, 8)
+    head = IIDSU(OURS).heads["planning"]
+    f = torch.randn(2, OURS.feature_dim, 8, 8)
     tp = torch.tensor([[20.0, 1.0], [20.0, 1.0]])
     with torch.no_grad():
         slow, fast = head(f, tp, torch.tensor([0.0, 0.0])), head(f, tp, torch.tensor([8.0, 8.0]))
     assert not torch.allclose(slow, fast)
     # a config saved before `planner_speed` existed is a planner without the speed input
-    old = {k: v for k, v in dataclasses.asdict(TINY).items() if k != "planner_speed"}
+    old = {k: v for k, v in dataclasses.asdict(OURS).items() if k != "planner_speed"}
     assert ModelConfig.from_dict(old).planner_speed is False
     state = {"model": IIDSU(ModelConfig.from_dict(old)).state_dict(), "model_config": old}
     model = model_from_checkpoint(state)
-    assert model.heads["planning"].mlp[0].in_features == TINY.feature_dim
+    assert model.heads["planning"].mlp[0].in_features == OURS.feature_dim
     assert model(*_inputs(1))["planning"].shape == (1, 4, 2)
 
 
@@ -246,10 +248,114 @@ def test_paper_model_shapes_on_meta_device():
         "bev": (1, 3, 256, 256),
         "traffic": (1, 2),
         "weather": (1, 4),
-        "camera_traffic": (1, 2),
     }
     assert [m.conv.kernel_size[0] for m in model.eca.values()] == [5] * 5
-    assert 60e6 < sum(p.numel() for p in model.parameters()) < 80e6
+
+
+def _children(model: torch.nn.Module) -> dict[str, tuple[str, int]]:
+    """Module path -> (class name, parameters) for every module two levels down."""
+    out = {}
+    for name, m in model.named_modules():
+        if name and name.count(".") < 2:
+            out[name] = (type(m).__name__, sum(p.numel() for p in m.parameters()))
+    return out
+
+
+# The paper's II-DSU at its size (Sec. III): what `train fit --config paper` builds.
+PAPER_MODULES = {
+    "image_encoder": ("ConvNeXt", 12_450_880),
+    "image_encoder.stem": ("Sequential", 3_264),
+    "image_encoder.stages": ("ModuleList", 12_447_616),
+    "lidar_encoder": ("ConvNeXt", 12_451_904),  # 4 LiDAR channels in: 1,024 more in the stem
+    "lidar_encoder.stem": ("Sequential", 4_288),
+    "lidar_encoder.stages": ("ModuleList", 12_447_616),
+    "fusion": ("ModuleList", 33_649_920),
+    "fusion.0": ("TransFuserLayer", 408_320),
+    "fusion.1": ("TransFuserLayer", 1_603_072),
+    "fusion.2": ("TransFuserLayer", 6_351_872),
+    "fusion.3": ("TransFuserLayer", 25_286_656),
+    "to_dsu": ("Conv2d", 1_049_600),  # 1x1 conv, 2 x 512 -> 1024
+    "eca": ("ModuleDict", 25),
+    "eca.planning": ("ECA", 5),  # k = 5, no bias
+    "eca.detection": ("ECA", 5),
+    "eca.bev": ("ECA", 5),
+    "eca.traffic": ("ECA", 5),
+    "eca.weather": ("ECA", 5),
+    "heads": ("ModuleDict", 10_547_360),
+    "heads.planning": ("PlanningHead", 740_738),  # MLP 1024-512-256-128, GRUCell(4, 128)
+    "heads.detection": ("DensityHead", 4_900_533),
+    "heads.bev": ("BEVHead", 4_899_939),
+    "heads.traffic": ("TrafficRuleHead", 2_050),  # mean over positions, FC 1024 -> 2
+    "heads.weather": ("WeatherHead", 4_100),
+}
+PAPER_PARAMETERS = 70_149_689
+
+
+def test_paper_architecture_is_pinned():
+    # Every module two levels down, its class and parameter count, and the total: the paper's
+    # model as Sec. III describes it, with nothing of ours (no lamp maps, no camera-only head).
+    with torch.device("meta"):
+        model = IIDSU(PAPER)
+    assert model.lamps is None and model.camera_traffic is None
+    assert _children(model) == PAPER_MODULES
+    assert sum(p.numel() for p in model.parameters()) == PAPER_PARAMETERS
+    assert model.heads["planning"].mlp[0].in_features == 1024  # F_DSU alone, no speed
+    assert model.heads["traffic"].fc.in_features == 1024  # the mean, no maximum
+    assert model.to_dsu.in_channels == 2 * 512  # the two last stages, nothing else
+
+
+def test_ours_is_the_paper_plus_the_additions_each_switchable():
+    from training.config import OURS_MODEL, OURS_TRAIN, architecture, with_architecture
+
+    paper_model, paper_train = PRESETS["tiny"]
+    ours_model, ours_train = preset("tiny", "ours")
+    assert architecture(paper_model, paper_train) == "paper" and paper_model.additions == ()
+    assert architecture(ours_model, ours_train) == "ours"
+    assert ours_model.additions == tuple(OURS_MODEL)
+    assert (ours_train.zoom_out, paper_train.zoom_out) == (OURS_TRAIN["zoom_out"], 1.0)
+    # everything else is the paper's: back to it, and the sizes of `paper` and `tiny` kept
+    assert with_architecture(ours_model, ours_train, "paper") == (paper_model, paper_train)
+    assert preset("paper", "ours")[0].dims == PAPER.dims
+    one = dataclasses.replace(paper_model, planner_speed=True)
+    assert architecture(one) == "paper + planner_speed"
+    assert architecture(dataclasses.replace(ours_model, lamp_channels=0)).startswith("paper + ")
+    with torch.device("meta"):
+        n_ours = sum(p.numel() for p in IIDSU(preset("paper", "ours")[0]).parameters())
+    assert n_ours > PAPER_PARAMETERS
+
+
+def test_plan_is_forwards_planning_output_for_either_architecture():
+    torch.manual_seed(0)
+    image, lidar, speed, target = _inputs(2)
+    image = torch.randint(0, 256, image.shape, dtype=torch.uint8)
+    for cfg in (TINY, OURS):
+        model = IIDSU(cfg).eval()
+        with torch.no_grad():
+            assert torch.equal(
+                model.plan(image, lidar, speed, target),
+                model(image, lidar, speed, target)["planning"],
+            )
+
+
+def test_checkpoints_from_before_the_additions_moved_load_their_lamp_maps():
+    # Until the additions moved to training/lamps.py the lamp convs were IIDSU.lamp and
+    # IIDSU.pixel_lamp; such a state dict loads into today's IIDSU.lamps with the same outputs.
+    from training.checkpoint import model_from_checkpoint
+
+    torch.manual_seed(0)
+    model = IIDSU(OURS).eval()
+    state = model.state_dict()
+    old = {}
+    for k, v in state.items():
+        k = k.replace("lamps.stage.", "lamp.").replace("lamps.pixel.", "pixel_lamp.")
+        old[k] = v
+    assert "lamp.weight" in old and "pixel_lamp.0.weight" in old
+    loaded = model_from_checkpoint({"model_config": OURS.to_dict(), "model": old})
+    image, lidar, speed, target = _inputs(1)
+    image = torch.randint(0, 256, image.shape, dtype=torch.uint8)
+    with torch.no_grad():
+        a, b = model(image, lidar, speed, target), loaded(image, lidar, speed, target)
+    assert all(torch.equal(a[k], b[k]) for k in a)
 
 
 def test_output_resolution_is_configurable():
@@ -269,18 +375,21 @@ def test_output_resolution_is_configurable():
     ],
 )
 def test_each_ablation_removes_its_head_and_loss(switch, head, terms, tmp_path_factory):
-    cfg = dataclasses.replace(TINY, **{switch: False})
-    model = IIDSU(cfg)
-    assert head not in model.heads and head not in model.eca
-    full = IIDSU(TINY)
-    assert sum(p.numel() for p in model.parameters()) < sum(p.numel() for p in full.parameters())
     batch = _batch(tmp_path_factory, n=2)
-    losses = compute_losses(model(*(batch[k] for k in INPUTS)), batch, TrainConfig())
-    assert not terms & losses.keys()
-    camera = cfg.has_camera_traffic  # goes with the traffic head
-    assert camera == (switch != "traffic")
-    expected = set(loss_terms(TINY.heads, True)) - terms - (set() if camera else {"camera_tf"})
-    assert set(losses) == set(loss_terms(cfg.heads, camera)) == expected
+    for base in (TINY, OURS):  # the ablations of the paper's model, and of ours
+        cfg = dataclasses.replace(base, **{switch: False})
+        model = IIDSU(cfg)
+        assert head not in model.heads and head not in model.eca
+        full = IIDSU(base)
+        n = sum(p.numel() for p in model.parameters())
+        assert n < sum(p.numel() for p in full.parameters())
+        losses = compute_losses(model(*(batch[k] for k in INPUTS)), batch, TrainConfig())
+        assert not terms & losses.keys()
+        camera = cfg.has_camera_traffic  # ours, and only with the traffic head
+        assert camera == (base is OURS and switch != "traffic")
+        expected = set(loss_terms(base.heads, base is OURS)) - terms
+        expected -= set() if camera else {"camera_tf"}
+        assert set(losses) == set(loss_terms(cfg.heads, camera)) == expected
 
 
 def test_single_frame_lidar_reads_two_channels():

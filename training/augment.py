@@ -1,4 +1,5 @@
-"""Training-time augmentation of the camera input (ours; the paper names none).
+"""Training-time augmentation of the camera input (ours, in `train fit --arch ours`; the paper
+names none).
 
 Zoom-out: the camera image is shrunk about its centre by a factor s <= 1 and the margin filled
 by repeating the edge pixels. The shrunk picture is what a camera on the same optical axis with

@@ -26,7 +26,16 @@ from pathlib import Path
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from schemas import cli, outputs
-from training.config import POOLS, PRESETS, ModelConfig, TrainConfig
+from training.config import (
+    ARCHITECTURES,
+    OURS_TRAIN,
+    POOLS,
+    PRESETS,
+    ModelConfig,
+    TrainConfig,
+    preset,
+    with_architecture,
+)
 from training.errors import UserError
 
 FRAME_ORDER = (
@@ -82,11 +91,12 @@ MODEL_FLAGS = {
     "no_traffic": "traffic",
     "no_weather": "weather",
     "single_frame_lidar": "single_frame_lidar",
-    "no_camera_traffic": "camera_traffic",
+    "planner_speed": "planner_speed",
+    "camera_traffic": "camera_traffic",
     "traffic_pool": "traffic_pool",
     "lamp_channels": "lamp_channels",
     "pixel_lamp_channels": "pixel_lamp_channels",
-    "no_traffic_residual": "traffic_residual",
+    "traffic_residual": "traffic_residual",
     "traffic_residual_dropout": "traffic_residual_dropout",
 }
 RESUMABLE = {"shards", "out", "epochs", "workers", "compile"}  # may change on --resume
@@ -95,7 +105,15 @@ RESUMABLE = {"shards", "out", "epochs", "workers", "compile"}  # may change on -
 def _add_fit(p: argparse.ArgumentParser) -> None:
     p.add_argument("--shards", metavar="DIR", help="shard directory or .parquet file")
     p.add_argument(
-        "--config", choices=sorted(PRESETS), help="preset: paper (default) or tiny (for CPUs)"
+        "--config",
+        choices=sorted(PRESETS),
+        help="size: paper (the paper's, default) or tiny (the same architecture shrunk for CPUs)",
+    )
+    p.add_argument(
+        "--arch",
+        choices=ARCHITECTURES,
+        help="paper: the paper's II-DSU (Sec. III), nothing of ours (default); ours: the "
+        "paper's plus every addition below",
     )
     p.add_argument("--out", metavar="DIR", help="run directory")
     p.add_argument(
@@ -128,18 +146,12 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--seed", type=int, metavar="N", help="seed of weights, split and data order")
     p.add_argument(
-        "--zoom-out",
-        type=_positive_float,
-        metavar="S",
-        help="camera zoom-out augmentation: half the training frames shrunk by a factor in "
-        "[S, 1) (1: off; ours, the paper names no augmentation)",
-    )
-    p.add_argument(
         "--traffic-context-weight",
         type=_positive_float,
         metavar="W",
         help="weight in L_light and L_sign of the frames where the ego's speed contradicts the "
-        "label (red or stop sign while moving, neither while stopped) (1: off; ours)",
+        "label (red or stop sign while moving, neither while stopped) (1: off; ours, in neither "
+        "architecture)",
     )
     p.add_argument(
         "--ema",
@@ -150,48 +162,6 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--output-px", type=_positive_int, metavar="R", help="R, side of the dense heads' maps"
-    )
-    p.add_argument(
-        "--no-camera-traffic",
-        action="store_true",
-        default=None,
-        help="without the camera-only traffic-rule training head (ours, not the paper's; on by "
-        "default)",
-    )
-    p.add_argument(
-        "--traffic-pool",
-        choices=POOLS,
-        help="how the traffic-rule heads reduce the 8x8 map: avg (mean) or avgmax (mean and "
-        "maximum side by side, the default: a lamp fills one cell of 64; ours, the paper says "
-        "only 'reduced to 1024 dimensions')",
-    )
-    p.add_argument(
-        "--lamp-channels",
-        type=_checked(int, lambda v: v >= 0, "0 or more"),
-        metavar="N",
-        help="signal-lamp maps from the camera's first stage (stride 4) into F_DSU and the "
-        "camera-only traffic head (0: off; ours)",
-    )
-    p.add_argument(
-        "--pixel-lamp-channels",
-        type=_checked(int, lambda v: v >= 0, "0 or more"),
-        metavar="N",
-        help="signal-lamp maps from per-pixel colour detectors on the camera image (stride 1) "
-        "beside them (0: off; ours, a 1x1 conv and GELU per pixel, max-pooled to 8x8)",
-    )
-    p.add_argument(
-        "--no-traffic-residual",
-        action="store_true",
-        default=None,
-        help="F_DSU's traffic-rule head predicts the logits on its own, as in the paper, instead "
-        "of a correction added to the camera-only head's (ours, the default)",
-    )
-    p.add_argument(
-        "--traffic-residual-dropout",
-        type=_checked(float, lambda v: 0.0 <= v < 1.0, "in [0, 1)"),
-        metavar="P",
-        help="in training, drop F_DSU's correction of each traffic logit with probability P "
-        "(dropout; 0: off; ours)",
     )
     p.add_argument(
         "--compile",
@@ -229,6 +199,58 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         default=None,
         help="LiDAR input of the current sweep only (2 channels)",
     )
+    ours = p.add_argument_group(
+        "additions of ours (none is in the paper; each is off in --arch paper, on in --arch "
+        "ours, and a flag here sets it either way; what each measured: docs/learning.md)"
+    )
+    ours.add_argument(
+        "--planner-speed",
+        action=argparse.BooleanOptionalAction,
+        help="ours: the planner's MLP also reads the ego speed",
+    )
+    ours.add_argument(
+        "--camera-traffic",
+        action=argparse.BooleanOptionalAction,
+        help="ours: a traffic-rule training head on the camera alone, before fusion",
+    )
+    ours.add_argument(
+        "--traffic-pool",
+        choices=POOLS,
+        help="ours: traffic-rule heads pool their 8x8 map by avgmax (mean and maximum; --arch "
+        "ours) or avg (the paper's mean)",
+    )
+    ours.add_argument(
+        "--lamp-channels",
+        type=_checked(int, lambda v: v >= 0, "0 or more"),
+        metavar="N",
+        help="ours: N lamp maps from the camera's first stage into F_DSU (--arch ours: 8; 0: off)",
+    )
+    ours.add_argument(
+        "--pixel-lamp-channels",
+        type=_checked(int, lambda v: v >= 0, "0 or more"),
+        metavar="N",
+        help="ours: N lamp maps from per-pixel colour detectors into F_DSU (--arch ours: 8; "
+        "0: off)",
+    )
+    ours.add_argument(
+        "--traffic-residual",
+        action=argparse.BooleanOptionalAction,
+        help="ours: F_DSU's traffic head corrects the camera-only head's logits (needs it)",
+    )
+    ours.add_argument(
+        "--traffic-residual-dropout",
+        type=_checked(float, lambda v: 0.0 <= v < 1.0, "in [0, 1)"),
+        metavar="P",
+        help="ours: in training, drop that correction with probability P (--arch ours: 0.5; "
+        "0: off)",
+    )
+    ours.add_argument(
+        "--zoom-out",
+        type=_positive_float,
+        metavar="S",
+        help="ours: camera zoom-out augmentation, half the training frames shrunk by a factor "
+        "in [S, 1) (--arch ours: 0.55; 1: off)",
+    )
     _preset_defaults(p)
 
 
@@ -260,33 +282,29 @@ Where the defaults come from. The paper (Sec. III-IV) fixes the model: LiDAR BEV
 8 px/m (32 m ahead, 16 m each side), T_past = 3, the camera crop 256x256, ConvNeXt widths
 64-128-256-512 with /4 /2 /2 /2, four TransFuser layers, F_DSU 8x8x1024, one ECA per head,
 4 waypoints from 4 GRU steps, the five heads and the form of the loss (Eq. 1-3), 2 Hz data.
-It gives no training recipe: optimizer, learning rate and schedule, epochs, batch size and
-the loss weights lambda/alpha/beta/gamma/delta are ours. AdamW at 1e-4 is TransFuser's
-(Prakash et al. 2021), the paper's closest baseline; weight decay 0.01 is AdamW's usual
-default; batch 32, 30 epochs, the warm-up + cosine schedule and the loss weights (planning
-1.0, detection 0.2, BEV 0.2, traffic 0.1, weather 0.1) are our choice, the weights set so
-that planning dominates as Sec. III-C wishes; the BEV class weights (1, 1, 3: lane markings
-are thin) and the red-light / stop-sign positive weights (3, 3: both are the minority) are
-ours too, and so is the camera-only traffic-rule head (weight 0.1; --no-camera-traffic drops
-it), which makes the camera encoder find lamps and signs itself, the traffic-rule heads'
-mean-and-maximum pooling (--traffic-pool avgmax: a lamp fills one of 64 cells) and
-signal-lamp maps from the camera's first stage (--lamp-channels 8) and from per-pixel colour
-detectors on the image (--pixel-lamp-channels 8), F_DSU's traffic head
-predicting a correction to the camera-only head's logits (--no-traffic-residual: on its own,
-as in the paper) with that correction dropped for half the training frames
-(--traffic-residual-dropout 0.5), the camera
-zoom-out augmentation (--zoom-out 0.55), which shows it lamps at the sizes other junctions
-give, and an optional context weight (--traffic-context-weight W, off by default), for
-frames where the ego's speed contradicts the red-light or stop-sign label. The
-tiny preset's values (lr 1e-3, batch 8, R = 64) are ours, for CPUs; bench/learn.py measures
-what they learn on a held-out town.
-TransFuser's fusion depth (8 blocks, 4 heads per layer) fills in what the paper leaves out.
+Where it is silent the model takes TransFuser's choice (Prakash et al. 2021, the paper's
+closest baseline): 8 attention blocks of 4 heads per fusion layer, 8x8 token anchors, learned
+position and velocity embeddings (training/config.py ModelConfig). `--arch paper` (the
+default) is that model and nothing else; `--arch ours` adds every option of the group
+"additions of ours" (training/lamps.py), each also settable on its own.
+The paper gives no training recipe: optimizer, learning rate and schedule, epochs, batch size
+and the loss weights lambda/alpha/beta/gamma/delta are ours. AdamW at 1e-4 is TransFuser's;
+weight decay 0.01 is AdamW's usual default; batch 32, 30 epochs, the warm-up + cosine schedule
+and the loss weights (planning 1.0, detection 0.2, BEV 0.2, traffic 0.1, weather 0.1) are our
+choice, set so that planning dominates as Sec. III-C wishes; the BEV class weights (1, 1, 3:
+lane markings are thin) and the red-light / stop-sign positive weights (3, 3: both are the
+minority) are ours too, and so is an optional context weight (--traffic-context-weight W, off
+in both architectures) for frames where the ego's speed contradicts the red-light or
+stop-sign label. The tiny preset's values (lr 1e-3, batch 8, R = 64) are ours, for CPUs;
+bench/learn.py measures what either architecture learns on a held-out town
+(docs/learning.md).
 """
 
 
 def _configs(args) -> tuple[ModelConfig, TrainConfig]:
-    """Preset configs with the flags the user gave applied; on --resume, the checkpoint's, where
-    only RESUMABLE flags may differ from what the run was started with."""
+    """Preset configs (`--config` size, `--arch` architecture) with the flags the user gave
+    applied; on --resume, the checkpoint's, where only RESUMABLE flags may differ from what the
+    run was started with."""
     given = {k for k in {*TRAIN_FLAGS, *MODEL_FLAGS} if getattr(args, k) is not None}
     train_changes = {f: getattr(args, a) for a, f in TRAIN_FLAGS.items() if a in given}
     model_changes = {}
@@ -295,7 +313,7 @@ def _configs(args) -> tuple[ModelConfig, TrainConfig]:
             model_changes[f] = False if a.startswith("no_") else getattr(args, a)
     try:
         if not args.resume:
-            model_cfg, train_cfg = PRESETS[args.config or "paper"]
+            model_cfg, train_cfg = preset(args.config or "paper", args.arch or "paper")
             return dataclasses.replace(model_cfg, **model_changes), dataclasses.replace(
                 train_cfg, **train_changes
             )
@@ -305,9 +323,16 @@ def _configs(args) -> tuple[ModelConfig, TrainConfig]:
         state = load_checkpoint(f"{args.out or TrainConfig.out}/{CHECKPOINT}")
         model_cfg = ModelConfig.from_dict(state["model_config"])
         train_cfg = TrainConfig.from_dict(state["train_config"])
-        base = PRESETS[args.config][0] if args.config else model_cfg
-        if dataclasses.replace(base, **model_changes) != model_cfg:
-            raise UserError("--config and the model flags must match the checkpoint's on --resume")
+        base, base_train = PRESETS[args.config][0] if args.config else model_cfg, train_cfg
+        if args.arch:
+            base, base_train = with_architecture(base, train_cfg, args.arch)
+        arch_train = {f: getattr(base_train, f) for f in OURS_TRAIN if f not in train_changes}
+        if dataclasses.replace(base, **model_changes) != model_cfg or any(
+            getattr(train_cfg, f) != v for f, v in arch_train.items()
+        ):
+            raise UserError(
+                "--config, --arch and the model flags must match the checkpoint's on --resume"
+            )
     except ValueError as e:  # a field value the config refuses (e.g. --output-px)
         raise UserError(str(e)) from None
     changed = [

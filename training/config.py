@@ -1,9 +1,12 @@
-"""Model and training configuration: two frozen dataclasses, two named presets.
+"""Model and training configuration: two frozen dataclasses, two sizes, two architectures.
 
-`paper` is the model of the II-DSU paper (Sec. III); `tiny` is the same architecture shrunk so
-that a training step runs in a fraction of a second on a laptop CPU (tests, `make demo`). The CLI
-starts from a preset and overrides fields with `dataclasses.replace`; checkpoints store both
-configs (`to_dict`) so `--resume`, `eval`, `analyze` and `show` rebuild the same model.
+Sizes (PRESETS): `paper` is the model of the II-DSU paper (Sec. III) at its size; `tiny` is the
+same architecture shrunk so that a training step runs in a fraction of a second on a laptop CPU
+(tests, `make demo`). Architectures (ARCHITECTURES): the dataclasses' defaults are the paper's
+model with nothing of ours; `ours` is it plus the additions of OURS_MODEL and OURS_TRAIN
+(`with_architecture`, `train fit --arch ours`), each also switchable on its own. The CLI starts
+from a preset and overrides fields with `dataclasses.replace`; checkpoints store both configs
+(`to_dict`) so `--resume`, `eval`, `analyze`, `show` and `drive` rebuild the same model.
 """
 
 from __future__ import annotations
@@ -22,7 +25,23 @@ HEADS = ("planning", "detection", "bev", "traffic", "weather")
 
 @dataclass(frozen=True)
 class ModelConfig:
-    """Architecture of II-DSU (paper Sec. III-B). Defaults are the paper's model."""
+    """Architecture of II-DSU (paper Sec. III-B). The defaults are the paper's model, with no
+    addition of ours (`architecture(cfg) == "paper"`).
+
+    Where the paper is silent the choice is TransFuser's (Prakash et al. 2021, the paper's
+    baseline, whose fusion layer and planner it reuses): the fusion depth (8 attention blocks, 4
+    heads per layer), 8x8 token anchors per modality, learned position embeddings plus a
+    velocity embedding of the measured ego speed (the only place the speed enters the paper's
+    model), the LiDAR count clip (5, TransFuser's hist_max_per_pixel), the planner's MLP
+    halving its width per layer and its GRU reading (previous waypoint, target point). ConvNeXt's
+    own choices fill the encoder: ConvNeXt-Tiny's depths and stochastic depth (0.1) and layer
+    scale (1e-6); TransFuser's encoders are ImageNet-pretrained, these cannot be (the paper's
+    widths are not ConvNeXt-T's). CenterNet's decoder widths (256, 128, 64) for the dense heads,
+    ECA's adaptive kernel rule, and a mean over positions for "reduced to 1024 dimensions".
+
+    Ours (`OURS_MODEL`, `train fit --arch ours`): the fields below "Additions of ours", each off
+    here and switchable on its own; docs/learning.md has what each was measured to do.
+    """
 
     # Encoders: ConvNeXt-Tiny's depths with the paper's widths, down-sampling /4, /2, /2, /2.
     depths: tuple[int, ...] = (3, 3, 9, 3)
@@ -38,9 +57,6 @@ class ModelConfig:
     feature_dim: int = 1024  # channels of F_DSU, the 8x8 scene feature (Sec. III-A)
     # Heads (Sec. III-B).
     planner_hidden: int = 128  # GRU state; the 3-layer MLP reduces F_DSU's 1024-d to this
-    # Ours, not the paper's: the planner's MLP also reads the measured ego speed, m/s (the
-    # paper feeds it only to the fusion tokens; see training/heads.py PlanningHead).
-    planner_speed: bool = True
     n_waypoints: int = 4  # T_future; the shards hold +0.5 .. +2.0 s
     output_px: int = 256  # R, side of the dense heads' maps; 256 / 2**k with k >= 0
     decoder_width: int = 256  # channels after the first up-sampling step; halved per step
@@ -52,53 +68,30 @@ class ModelConfig:
     traffic: bool = True
     weather: bool = True
     single_frame_lidar: bool = False  # LiDAR input: the current sweep only (training/model.py)
-    # Ours, not the paper's: a training-time traffic-rule head on the camera alone
-    # (training/model.py IIDSU.camera_traffic): it reads the lamp maps (lamp_channels), or,
-    # without them, stages 2-4 of the camera run again on the unfused first stage. Without it
-    # the tiny model read red lights from LiDAR context, not from the lamps: trained on a
-    # 16k-frame v10 build, its red-light F1 with a flat camera image was still 0.78 on
-    # grid_small and 0.36 on the held-out town (0.96 and 0.42 with the image), and a linear
-    # probe of the camera encoder alone found no red light (F1 0.37 seen, 0.05 held out;
-    # bench/probe.py --head red [--blank image]).
-    camera_traffic: bool = True
-    # Ours: how the traffic-rule heads (and the camera-only one) reduce their 8x8 map; the paper
-    # says only "reduced to 1024 dimensions" (Sec. III-B). "avg" is the mean over positions, as
-    # the planning head's; "avgmax" adds the maximum beside it, because a signal lamp 1.5-3 px
-    # wide fills one cell of 64 and a mean dilutes it (one threshold on the raw image's third
-    # largest redness R - max(G, B), chosen on the seven training towns of the 16k v10 build,
-    # scores held-out arterial's red lights F1 0.81; the avg-pooled model 0.47).
-    traffic_pool: str = "avgmax"
-    # Ours: signal-lamp channels. A 1x1 conv on the camera encoder's first stage (stride 4,
-    # before any fusion) gives this many maps, each max-pooled to F_DSU's 8x8 grid and fed
-    # with the fused maps into the 1x1 conv that makes F_DSU; the camera-only traffic-rule head
-    # reads them instead of re-running stages 2-4. A held-out lamp is 1.5-3 px: on the 16k v10
-    # build a camera-only red-light classifier trained on seven towns scored on held-out
-    # arterial F1 0.21 reading the stride-32 map, 0.32 at stride 8 and 0.63-0.80 with 8 such
-    # stride-4 maps (1,000 steps each; 3 seeds: 0.80, 0.68, 0.63). 0 = off (earlier runs).
-    lamp_channels: int = 8
-    # Ours: pixel lamp channels. Per-pixel colour detectors on the normalised camera image (a
-    # 1x1 conv 3 -> this many, then GELU) give maps max-pooled to F_DSU's grid beside the lamp
-    # maps above, so that a lamp's colour is judged per pixel before any stride mixes it with
-    # its surround (one threshold on the raw image's third-largest redness scores held-out
-    # arterial F1 0.81). On bench/learn.py's 16k check: held-out red-light F1 0.873 with 8,
-    # 0.75 without (README "Does it learn?"); 29 ms forward and backward for 8 images on one
-    # thread, against 123 for a 3 -> 16 -> 8 MLP. 0 = off (runs from before the option).
-    pixel_lamp_channels: int = 8
-    # Ours: F_DSU's traffic-rule head predicts a correction to the camera-only head's logits
-    # (IIDSU.forward: traffic = head(ECA(F_DSU)) + camera_traffic), so that the lamp evidence
-    # the camera head finds is the fused head's starting point, not one input among 2C + k that
-    # the fused head may overrule with per-town LiDAR context. On the 16k v10 check (6 epochs,
-    # one run each) held-out arterial's red-light F1 went from 0.42 (camera-only head 0.66) to
-    # 0.63 (0.73). Needs the camera-only head; off without it.
-    traffic_residual: bool = True
-    # Ours: in training, each frame's F_DSU correction of each traffic output is dropped with
-    # this probability (the logit is then the camera head's alone) and kept ones are scaled by
-    # 1 / (1 - p), as dropout does; at evaluation it is always kept. It makes the correction
-    # pay for its variance, against per-town context the fused head learns on the training
-    # towns. 0 = off. On the 16k v10 check (6 epochs, one run each) 0.5 raised held-out
-    # arterial's red-light F1 from 0.63 to 0.75 (recall within 5 m of the stop line from 0.16
-    # to 0.61 on 800 sampled frames) and stop signs from 0.76 to 0.81.
-    traffic_residual_dropout: float = 0.5
+
+    # Additions of ours (training/lamps.py, training/heads.py), all off in the paper's model;
+    # what each changed on held-out towns: docs/learning.md.
+    # The planner's MLP also reads the measured ego speed, m/s (heads.PlanningHead).
+    planner_speed: bool = False
+    # A traffic-rule head on the camera alone, before any fusion, trained beside F_DSU's
+    # (lamps.CameraTrafficHead; loss weight TrainConfig.lambda_camera_tf).
+    camera_traffic: bool = False
+    # How the traffic-rule heads reduce their 8x8 map: "avg" (the paper's mean) or "avgmax"
+    # (mean and maximum side by side, so a lamp filling one cell of 64 is not averaged away).
+    traffic_pool: str = "avg"
+    # Signal-lamp maps: a 1x1 conv on the camera's first stage (stride 4, unfused), this many
+    # maps max-pooled to F_DSU's grid and concatenated into the 1x1 conv that makes F_DSU
+    # (lamps.LampMaps). 0 = off.
+    lamp_channels: int = 0
+    # Per-pixel colour detectors on the normalised image (a 1x1 conv 3 -> this many, GELU),
+    # max-pooled beside the lamp maps (lamps.LampMaps). 0 = off.
+    pixel_lamp_channels: int = 0
+    # F_DSU's traffic head predicts a correction added to the camera-only head's logits
+    # (lamps.traffic_residual); needs camera_traffic.
+    traffic_residual: bool = False
+    # In training, drop that correction per frame and logit with this probability (scaled as
+    # dropout); 0 = off.
+    traffic_residual_dropout: float = 0.0
 
     def __post_init__(self):
         if len(self.depths) != 4 or len(self.dims) != 4:
@@ -155,19 +148,17 @@ class ModelConfig:
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
+    @property
+    def additions(self) -> tuple[str, ...]:
+        """The additions of ours this config switches on (fields of OURS_MODEL that differ
+        from the paper's model), in OURS_MODEL's order; () for the paper's model."""
+        paper = ModelConfig()
+        return tuple(k for k in OURS_MODEL if getattr(self, k) != getattr(paper, k))
+
     @classmethod
     def from_dict(cls, d: dict) -> ModelConfig:
-        # Checkpoints from before an option was added were trained without it.
-        d = {
-            "planner_speed": False,
-            "camera_traffic": False,
-            "traffic_pool": "avg",
-            "lamp_channels": 0,
-            "pixel_lamp_channels": 0,
-            "traffic_residual": False,
-            "traffic_residual_dropout": 0.0,
-            **d,
-        }
+        # A checkpoint stores every field it was trained with; one from before an addition
+        # existed was trained without it, i.e. with the paper's value (the default).
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
 
 
@@ -192,10 +183,11 @@ class TrainConfig:
     val_fraction: float = 0.1  # share of episodes held out, unless val_towns is given
     val_towns: tuple[str, ...] = ()  # hold out these towns' episodes instead
     seed: int = 0
-    # Ours: camera zoom-out augmentation (training/augment.py). Half the training frames are
-    # shrunk about the image centre by a factor uniform in [zoom_out, 1), so that a signal lamp
-    # is seen at the sizes other junction widths give (1 or more: off).
-    zoom_out: float = 0.55
+    # Ours (OURS_TRAIN): camera zoom-out augmentation (training/augment.py). This share of the
+    # training frames is shrunk about the image centre by a factor uniform in [zoom_out, 1), so
+    # that a signal lamp is seen at the sizes other junction widths give. 1 or more: off (the
+    # paper names no augmentation); measured: docs/learning.md.
+    zoom_out: float = 1.0
     zoom_out_probability: float = 0.5
     compile: bool = False  # torch.compile the model (worth it on a GPU, slow to start)
     # Ours: decay of an exponential moving average of the weights, updated every step; the
@@ -211,21 +203,22 @@ class TrainConfig:
     lambda_m: float = 0.2
     lambda_tf: float = 0.1
     lambda_wc: float = 0.1
-    # Ours: weight of the camera-only traffic-rule term (ModelConfig.camera_traffic), as much as
-    # the traffic head's own.
+    # Ours: weight of the camera-only traffic-rule term (ModelConfig.camera_traffic; only with
+    # it), as much as the traffic head's own.
     lambda_camera_tf: float = 0.1
     # Cross-entropy weights of the BEV classes (other, drivable, lane marking): ours. Markings
-    # are ~8 % of the pixels at R = 64 (3 % at 256; measured on an 8-town build), and with equal
-    # weights the tiny model never predicted them on a held-out town (lane IoU 0.00).
+    # are ~8 % of the pixels at R = 64 (3 % at 256); with equal weights the tiny model predicted
+    # none on a held-out town (docs/learning.md, "BEV weights 1-1-1").
     bev_class_weights: tuple[float, ...] = (1.0, 1.0, 3.0)
     # Positive-class weights of L_light and L_sign (BCE pos_weight): ours. A red light governs
     # ~15-25 % of the frames and a stop sign fewer; unweighted, the tiny model's red-light head
-    # flipped to "never red" on a held-out town (F1 0.77 at epochs 1 and 3, 0.00 at the end).
+    # ended at "never red" on a held-out town (docs/learning.md, "BEV weights 1-1-1").
     traffic_pos_weight: tuple[float, float] = (3.0, 3.0)
-    # Ours: frames where the ego's speed contradicts the traffic label's usual context (red
-    # light or stop sign while moving, neither while stopped) weigh this much in L_light and
-    # L_sign (losses.context_weights), against the "stopped means red" shortcut; 1 = off.
-    traffic_context_weight: float = 1.0  # off: 3 measured worse (held-out red F1 0.33 vs 0.47)
+    # Ours, in neither architecture: frames where the ego's speed contradicts the traffic
+    # label's usual context (red light or stop sign while moving, neither while stopped) weigh
+    # this much in L_light and L_sign (losses.context_weights); 1 = off (3 measured worse:
+    # docs/learning.md).
+    traffic_context_weight: float = 1.0
     alpha: float = 1.0
     beta: float = 1.0
     gamma: float = 1.0
@@ -236,14 +229,63 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainConfig:
-        # runs from before these options had neither
-        d = {"zoom_out": 1.0, "traffic_context_weight": 1.0, "ema_decay": 0.0, **d}
+        # runs from before an option had none: its default is "off"
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
 
 
+ARCHITECTURES = ("paper", "ours")
+"""`train fit --arch`: the paper's II-DSU (Sec. III), or it with every addition of ours."""
+
+OURS_MODEL: dict[str, object] = {
+    "planner_speed": True,
+    "camera_traffic": True,
+    "traffic_pool": "avgmax",
+    "lamp_channels": 8,
+    "pixel_lamp_channels": 8,
+    "traffic_residual": True,
+    "traffic_residual_dropout": 0.5,
+}
+"""The additions of ours to ModelConfig, with the values `--arch ours` sets (each field's
+comment says what it does; docs/learning.md what it was measured to do)."""
+
+OURS_TRAIN: dict[str, object] = {"zoom_out": 0.55}
+"""The addition of ours to TrainConfig that `--arch ours` sets."""
+
+
+def with_architecture(
+    model: ModelConfig, train: TrainConfig, arch: str
+) -> tuple[ModelConfig, TrainConfig]:
+    """`model` and `train` with every addition of ours set to `arch`'s value: the paper's
+    (off) or OURS_MODEL / OURS_TRAIN's. Every other field is kept."""
+    if arch not in ARCHITECTURES:
+        raise ValueError(f"architecture must be one of {ARCHITECTURES}, got {arch!r}")
+    if arch == "paper":
+        m, t = ModelConfig(), TrainConfig()
+        paper_model = {k: getattr(m, k) for k in OURS_MODEL}
+        paper_train = {k: getattr(t, k) for k in OURS_TRAIN}
+        return dataclasses.replace(model, **paper_model), dataclasses.replace(train, **paper_train)
+    return dataclasses.replace(model, **OURS_MODEL), dataclasses.replace(train, **OURS_TRAIN)
+
+
+def architecture(model: ModelConfig, train: TrainConfig | None = None) -> str:
+    """The architecture's name: `paper` (no addition of ours), `ours` (every addition at
+    OURS_MODEL / OURS_TRAIN's value), else `paper + ` the additions that are on."""
+    on = list(model.additions)
+    if train is not None:
+        paper = TrainConfig()
+        on += [k for k in OURS_TRAIN if getattr(train, k) != getattr(paper, k)]
+    if not on:
+        return "paper"
+    ours = all(getattr(model, k) == v for k, v in OURS_MODEL.items())
+    if ours and (train is None or all(getattr(train, k) == v for k, v in OURS_TRAIN.items())):
+        return "ours"
+    return "paper + " + ", ".join(on)
+
+
 PRESETS: dict[str, tuple[ModelConfig, TrainConfig]] = {
+    # The paper's model (Sec. III); the training recipe is ours and TransFuser's (TrainConfig).
     "paper": (ModelConfig(), TrainConfig()),
-    # The same model shrunk for CPUs: one block per stage, widths / 4, F_DSU 8x8x128, one
+    # The same architecture shrunk for CPUs: one block per stage, widths / 4, F_DSU 8x8x128, one
     # attention block per fusion layer, 64x64 dense maps (0.5 m per pixel).
     "tiny": (
         ModelConfig(
@@ -260,3 +302,8 @@ PRESETS: dict[str, tuple[ModelConfig, TrainConfig]] = {
         TrainConfig(batch_size=8, lr=1e-3, warmup_frac=0.05, num_workers=1, shuffle_buffer=256),
     ),
 }
+
+
+def preset(name: str, arch: str = "paper") -> tuple[ModelConfig, TrainConfig]:
+    """PRESETS[name] (the paper's architecture at that size) as `arch` ("paper" or "ours")."""
+    return with_architecture(*PRESETS[name], arch)

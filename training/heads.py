@@ -25,12 +25,12 @@ class PlanningHead(nn.Module):
         in_dim: channels of F_DSU.
         hidden: GRU state size (the MLP's output).
         n_waypoints: T_future.
-        speed: the MLP also reads the measured ego speed (ours: the paper feeds the speed only
-            to the fusion tokens, from where the average pool must recover it; two tiny-config
-            epochs on a 4k-frame build gave held-out ADE 0.84 m without it, 0.78 m with it).
+        speed: the MLP also reads the measured ego speed (ours, ModelConfig.planner_speed; in
+            the paper's model the speed reaches the planner only through TransFuser's velocity
+            embedding in the fusion tokens; measured: docs/learning.md).
     """
 
-    def __init__(self, in_dim: int, hidden: int = 128, n_waypoints: int = 4, speed: bool = True):
+    def __init__(self, in_dim: int, hidden: int = 128, n_waypoints: int = 4, speed: bool = False):
         super().__init__()
         self.n_waypoints = n_waypoints
         self.speed = speed

@@ -7,11 +7,10 @@ feature F_DSU, one ECA module per head, and five heads.
                                                                       bev (B,3,R,R),
                                                                       traffic (B,2), weather (B,4)
 
-Ours (ModelConfig.lamp_channels, pixel_lamp_channels): a 1x1 conv on the camera's first stage
-(stride 4) and per-pixel colour detectors on the image (a 1x1 conv and GELU, stride 1) give
-lamp maps, max-pooled to 8x8 and concatenated before the 1x1 conv, so that a signal lamp a few
-pixels wide reaches F_DSU; the camera-only traffic head (ModelConfig.camera_traffic) reads them,
-and F_DSU's traffic head adds its logits to that head's (ModelConfig.traffic_residual).
+That is the paper's model (ModelConfig's defaults). The additions of ours live in
+training/lamps.py and attach at two named points of `IIDSU`: lamp maps concatenated where F_DSU
+is made (`IIDSU.lamps`), and a camera-only traffic head whose logits F_DSU's traffic head
+corrects (`IIDSU.camera_traffic`).
 
     >>> from training.config import PRESETS
     >>> model = IIDSU(PRESETS["tiny"][0])
@@ -35,6 +34,7 @@ from training.heads import (
     TrafficRuleHead,
     WeatherHead,
 )
+from training.lamps import CameraTrafficHead, LampMaps, rename_old_keys, traffic_residual
 
 INPUTS = ("image", "lidar", "speed", "target_point")
 """Batch keys the model reads, in `IIDSU.forward`'s argument order."""
@@ -147,6 +147,10 @@ class IIDSU(nn.Module):
     ch1..3 (above-ground hits at t, t-1, t-2). With `single_frame_lidar` (Table III's "No
     Multi-frame LiDAR") it is the current sweep only: the `lidar_ground_t` column (ground hits
     at t) and ch1, as the loader builds it (training/data.py `_sample`).
+
+    Additions of ours (training/lamps.py; None in the paper's model) attach at two points: the
+    lamp maps (`lamps`) where F_DSU is made, and the camera-only traffic head
+    (`camera_traffic`) with its residual on the traffic output.
     """
 
     def __init__(self, cfg: ModelConfig):
@@ -160,13 +164,12 @@ class IIDSU(nn.Module):
             TransFuserLayer(d, cfg.fusion_tokens, cfg.fusion_blocks, cfg.fusion_heads)
             for d in cfg.dims
         )
-        # Ours (ModelConfig.lamp_channels, pixel_lamp_channels): signal-lamp maps from the
-        # camera's first stage and from per-pixel colour detectors on the image.
-        k = cfg.lamp_channels + cfg.pixel_lamp_channels
-        self.lamp = nn.Conv2d(cfg.dims[0], cfg.lamp_channels, 1) if cfg.lamp_channels else None
-        self.pixel_lamp = None
-        if cfg.pixel_lamp_channels:  # per-pixel colour detectors: a 1x1 conv and GELU
-            self.pixel_lamp = nn.Sequential(nn.Conv2d(3, cfg.pixel_lamp_channels, 1), nn.GELU())
+        self.lamps = None  # ours: signal-lamp maps into F_DSU
+        if cfg.lamp_channels or cfg.pixel_lamp_channels:
+            self.lamps = LampMaps(
+                cfg.dims[0], cfg.lamp_channels, cfg.pixel_lamp_channels, cfg.feature_px
+            )
+        k = self.lamps.channels if self.lamps is not None else 0
         self.to_dsu = nn.Conv2d(2 * cfg.dims[-1] + k, cfg.feature_dim, kernel_size=1)
         self.eca = nn.ModuleDict({name: ECA(cfg.feature_dim) for name in cfg.heads})
         steps = int(math.log2(cfg.output_px // cfg.feature_px))
@@ -181,13 +184,14 @@ class IIDSU(nn.Module):
             "weather": lambda: WeatherHead(C),
         }
         self.heads = nn.ModuleDict({name: make[name]() for name in cfg.heads})
-        # Ours (ModelConfig.camera_traffic): the traffic rule from the camera encoder alone.
-        camera_dim = k if k else cfg.dims[-1]  # the lamp maps, else the camera's last stage
-        self.camera_traffic = (
-            TrafficRuleHead(camera_dim, cfg.traffic_pool) if cfg.has_camera_traffic else None
-        )
+        self.camera_traffic = None  # ours: the traffic rule from the camera alone
+        if cfg.has_camera_traffic:
+            self.camera_traffic = CameraTrafficHead(k or cfg.dims[-1], cfg.traffic_pool)
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), False)
+        self.register_load_state_dict_pre_hook(
+            lambda module, state, prefix, *_: rename_old_keys(state, prefix)
+        )
 
     def encode(self, image: torch.Tensor, lidar: torch.Tensor, speed: torch.Tensor) -> torch.Tensor:
         """The scene feature F_DSU.
@@ -200,46 +204,33 @@ class IIDSU(nn.Module):
         Returns:
             (B, feature_dim, H / 32, W / 32) float.
         """
-        return self._encode(image, lidar, speed, camera_alone=False)[0]
+        return self._encode(image, lidar, speed)[0]
 
     def _encode(
-        self, image: torch.Tensor, lidar: torch.Tensor, speed: torch.Tensor, camera_alone: bool
-    ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """F_DSU and, with `camera_alone`, a map of the camera alone (no fusion has touched
-        it): the lamp maps (B, lamp_channels + pixel_lamp_channels, H / 32, W / 32) when the
-        model has them, else stages 2-4 run a second time on the first stage's output,
-        (B, dims[-1], H / 32, W / 32).
-
-        The lamp maps: a 1x1 conv on the camera's first stage (stride 4) and per-pixel colour
-        detectors on the image (stride 1), each max-pooled to F_DSU's grid, so that a lamp a
-        few pixels wide reaches F_DSU undiluted."""
-        x_img = (image.float() / 255.0 - self.mean) / self.std
+        self, image: torch.Tensor, lidar: torch.Tensor, speed: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+        """F_DSU (the paper's architecture figure: two encoders, a TransFuser layer after each
+        stage, the last stages concatenated into a 1x1 conv), the lamp maps (ours; None without
+        them) and the camera's first stage before any fusion (what ours read)."""
         if lidar.shape[1] != self.cfg.lidar_in_channels:  # e.g. 4 summed channels, 2 wanted
             raise ValueError(
                 f"LiDAR input has {lidar.shape[1]} channels; this model takes "
                 f"{self.cfg.lidar_in_channels} (single_frame_lidar={self.cfg.single_frame_lidar})"
             )
-        lid = lidar.float()
-        x_lid = lid.clamp(max=self.cfg.lidar_clip_count) / self.cfg.lidar_clip_count
-        px = self.cfg.feature_px
-        pixel = [] if self.pixel_lamp is None else [self.pixel_lamp(x_img)]
-        x_img = self.image_encoder.stem(x_img)
-        x_lid = self.lidar_encoder.stem(x_lid)
-        camera, lamps = None, []
-        rerun = camera_alone and self.lamp is None and self.pixel_lamp is None
-        for k, (img_stage, lid_stage, fuse) in enumerate(
-            zip(self.image_encoder.stages, self.lidar_encoder.stages, self.fusion)
-        ):
-            x_img = img_stage(x_img)
-            if k == 0 and self.lamp is not None:
-                lamps = [self.lamp(x_img)]
-            elif rerun:
-                camera = x_img if k == 0 else img_stage(camera)
-            x_img, x_lid = fuse(x_img, lid_stage(x_lid), speed)
-        lamps = [F.adaptive_max_pool2d(m, px) for m in lamps + pixel]  # (B, k, 8, 8) each
-        if camera_alone and lamps:
-            camera = torch.cat(lamps, dim=1)
-        return self.to_dsu(torch.cat([x_img, x_lid, *lamps], dim=1)), camera  # (B, 1024, 8, 8)
+        image = (image.float() / 255.0 - self.mean) / self.std
+        clip = self.cfg.lidar_clip_count
+        x_img = self.image_encoder.stem(image)  # (B, dims[0], H / 4, W / 4)
+        x_lid = self.lidar_encoder.stem(lidar.float().clamp(max=clip) / clip)
+        stages = zip(self.image_encoder.stages, self.lidar_encoder.stages, self.fusion)
+        for k, (img_stage, lid_stage, fuse) in enumerate(stages):
+            x_img, x_lid = img_stage(x_img), lid_stage(x_lid)
+            if k == 0:
+                first_stage = x_img  # the camera's first stage, unfused (ours read it)
+            x_img, x_lid = fuse(x_img, x_lid, speed)  # (B, dims[k], H / 2**(k+2), ...) each
+        maps = [x_img, x_lid]  # (B, dims[-1], H / 32, W / 32) each
+        lamps = None if self.lamps is None else self.lamps(image, first_stage)  # ours
+        maps += [] if lamps is None else [lamps]  # (B, k, H / 32, W / 32)
+        return self.to_dsu(torch.cat(maps, dim=1)), lamps, first_stage  # F_DSU (B, 1024, 8, 8)
 
     def forward(
         self,
@@ -251,20 +242,32 @@ class IIDSU(nn.Module):
         """Inputs as in `encode`, plus target_point (B, 2) float32, m, ego frame.
 
         Returns raw head outputs: planning (B, 4, 2) waypoints in m (ego frame); detection
-        (B, 21, R, R); bev (B, 3, R, R) logits; traffic (B, 2) logits; weather (B, 4) logits;
-        with `cfg.camera_traffic`, camera_traffic (B, 2) logits of the camera alone (the lamp
-        maps, else the camera encoder run without fusion; a training signal, ours: it makes the
-        camera branch find the lamps and signs itself). With `cfg.traffic_residual` (ours) the
-        traffic logits are F_DSU's head's plus camera_traffic's.
+        (B, 21, R, R); bev (B, 3, R, R) logits; traffic (B, 2) logits; weather (B, 4) logits.
+        Ours, with `cfg.camera_traffic`: camera_traffic (B, 2) logits of the camera alone (a
+        training signal that makes the camera branch find the lamps and signs itself), and with
+        `cfg.traffic_residual` the traffic logits are F_DSU's head's plus camera_traffic's.
         """
-        f, camera = self._encode(image, lidar, speed, camera_alone=self.camera_traffic is not None)
+        f, lamps, first_stage = self._encode(image, lidar, speed)
         out = {}
         for name, head in self.heads.items():
-            f_head = self.eca[name](f)
+            f_head = self.eca[name](f)  # ECA: this head's channel weights on F_DSU
             out[name] = head(f_head, target_point, speed) if name == "planning" else head(f_head)
-        if camera is not None:
-            out["camera_traffic"] = self.camera_traffic(camera)
-        if self.cfg.has_traffic_residual:  # ours: F_DSU corrects the camera's traffic logits
-            correction = F.dropout(out["traffic"], self.cfg.traffic_residual_dropout, self.training)
-            out["traffic"] = correction + out["camera_traffic"]
+        if self.camera_traffic is not None:  # ours (training/lamps.py)
+            camera = self.camera_traffic(lamps, first_stage, self.image_encoder.stages)
+            out["camera_traffic"] = camera
+            if self.cfg.has_traffic_residual:
+                p = self.cfg.traffic_residual_dropout
+                out["traffic"] = traffic_residual(out["traffic"], camera, p, self.training)
         return out
+
+    def plan(
+        self,
+        image: torch.Tensor,
+        lidar: torch.Tensor,
+        speed: torch.Tensor,
+        target_point: torch.Tensor,
+    ) -> torch.Tensor:
+        """The planning output alone, (B, T_future, 2) waypoints in m (ego frame): what driving
+        needs, without the dense heads' cost. Inputs as in `forward`."""
+        f = self.encode(image, lidar, speed)
+        return self.heads["planning"](self.eca["planning"](f), target_point, speed)
