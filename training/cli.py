@@ -74,6 +74,8 @@ TRAIN_FLAGS = {
     "traffic_context_weight": "traffic_context_weight",
     "ema": "ema_decay",
     "compile": "compile",
+    "cache_dir": "cache_dir",
+    "cache_gb": "cache_gb",
 }
 MODEL_FLAGS = {
     "output_px": "output_px",
@@ -89,7 +91,8 @@ MODEL_FLAGS = {
     "no_traffic_residual": "traffic_residual",
     "traffic_residual_dropout": "traffic_residual_dropout",
 }
-RESUMABLE = {"shards", "out", "epochs", "workers", "compile"}  # may change on --resume
+# may change on --resume
+RESUMABLE = {"shards", "out", "epochs", "workers", "compile", "cache_dir", "cache_gb"}
 
 
 def _add_fit(p: argparse.ArgumentParser) -> None:
@@ -198,6 +201,19 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         action="store_true",
         default=None,
         help="torch.compile the model (default: off)",
+    )
+    p.add_argument(
+        "--cache-dir",
+        metavar="DIR",
+        help="decoded-frame cache, safe to delete (default: $IIDSU_CACHE/decoded, else "
+        "~/.cache/iidsu/decoded)",
+    )
+    p.add_argument(
+        "--cache-gb",
+        type=_checked(float, lambda v: v >= 0, "0 or more"),
+        metavar="N",
+        help="bound of the decoded-frame cache in GB; frames past it are decoded every epoch "
+        "(0: no cache)",
     )
     p.add_argument("--device", choices=DEVICES, default="auto", help=DEVICE_HELP)
     p.add_argument(

@@ -198,6 +198,10 @@ class TrainConfig:
     zoom_out: float = 0.55
     zoom_out_probability: float = 0.5
     compile: bool = False  # torch.compile the model (worth it on a GPU, slow to start)
+    # Decoded-frame cache (training/cache.py): its directory ("": $IIDSU_CACHE/decoded, else
+    # ~/.cache/iidsu/decoded) and its bound in GB (0: off, every epoch decodes the shards).
+    cache_dir: str = ""
+    cache_gb: float = 32.0
     # Ours: decay of an exponential moving average of the weights, updated every step; the
     # average is what validation scores and last.pt's "model" holds (training/fit.py). 0 = off.
     ema_decay: float = 0.0
