@@ -76,6 +76,7 @@ TRAIN_FLAGS = {
     "compile": "compile",
     "cache_dir": "cache_dir",
     "cache_gb": "cache_gb",
+    "threads": "threads",
 }
 MODEL_FLAGS = {
     "output_px": "output_px",
@@ -92,7 +93,7 @@ MODEL_FLAGS = {
     "traffic_residual_dropout": "traffic_residual_dropout",
 }
 # may change on --resume
-RESUMABLE = {"shards", "out", "epochs", "workers", "compile", "cache_dir", "cache_gb"}
+RESUMABLE = {"shards", "out", "epochs", "workers", "compile", "cache_dir", "cache_gb", "threads"}
 
 
 def _add_fit(p: argparse.ArgumentParser) -> None:
@@ -214,6 +215,12 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         metavar="N",
         help="bound of the decoded-frame cache in GB; frames past it are decoded every epoch "
         "(0: no cache)",
+    )
+    p.add_argument(
+        "--threads",
+        type=_workers,
+        metavar="N",
+        help="intra-op CPU threads per process (0: the cores it may use / processes per machine)",
     )
     p.add_argument("--device", choices=DEVICES, default="auto", help=DEVICE_HELP)
     p.add_argument(

@@ -118,6 +118,19 @@ def to_device(batch: dict, device: torch.device) -> dict:
     return moved
 
 
+def cpu_threads(requested: int = 0) -> int:
+    """Intra-op threads for this process: `requested`; else $OMP_NUM_THREADS if set (the
+    user's); else the cores its CPU affinity allows divided by the training processes on this
+    machine (torchrun's LOCAL_WORLD_SIZE). torch's own default counts the machine's cores, also
+    those a container or a sibling rank uses."""
+    if requested:
+        return requested
+    if os.environ.get("OMP_NUM_THREADS", "").isdigit():
+        return max(1, int(os.environ["OMP_NUM_THREADS"]))
+    local_world = int(os.environ.get("LOCAL_WORLD_SIZE", "1"))
+    return max(1, len(os.sched_getaffinity(0)) // local_world)
+
+
 def tune_allocator() -> None:
     """Let glibc's malloc keep freed memory for the next step instead of handing it back to
     the kernel: a training step frees and reallocates the same few-MB tensors, and each fresh
@@ -242,14 +255,13 @@ def _prepare_cache(index, model_cfg: ModelConfig, cfg: TrainConfig, proc: Proces
     if cfg.cache_gb <= 0:
         return {}
     root = Path(cfg.cache_dir) if cfg.cache_dir else cache.default_root()
-    local_world = int(os.environ.get("LOCAL_WORLD_SIZE", proc.world))
     try:
         return cache.prepare(
             sorted(index.path.unique()),
             cache.Inputs(model_cfg.output_px, model_cfg.single_frame_lidar),
             root,
             int(cfg.cache_gb * 1e9),
-            processes=max(1, len(os.sched_getaffinity(0)) // local_world),
+            processes=cpu_threads(),
             rank=proc.rank,
             world=proc.world,
             barrier=dist.barrier if proc.world > 1 else None,
@@ -268,6 +280,7 @@ def fit(model_cfg: ModelConfig, cfg: TrainConfig, resume: bool = False, device: 
     path of the checkpoint, OUT/last.pt."""
     proc = start_process(device)
     tune_allocator()
+    torch.set_num_threads(cpu_threads(cfg.threads))
     out = Path(cfg.out)
     ckpt_path = out / CHECKPOINT
     state = load_checkpoint(ckpt_path) if resume else None
