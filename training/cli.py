@@ -226,7 +226,8 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--resume",
         action="store_true",
-        help="continue OUT/last.pt exactly; only --epochs, --shards, --workers, --compile may change",
+        help="continue OUT/last.pt exactly; only --epochs, --shards, --workers, --compile, "
+        "--cache-dir, --cache-gb, --threads may change",
     )
     p.add_argument(
         "--force",
