@@ -24,15 +24,9 @@ def shards(synthetic_shards) -> Path:
 
 
 def _train_cfg(shards: Path, out: Path, **changes):
-    return dataclasses.replace(
-        TINY_TRAIN,
-        shards=str(shards),
-        out=str(out),
-        batch_size=4,
-        num_workers=0,
-        val_fraction=0.25,
-        **changes,
-    )
+    base = dict(shards=str(shards), out=str(out), batch_size=4, num_workers=0, val_fraction=0.25)
+    base["cache_dir"] = str(Path(out).parent / "decoded")  # not the user's ~/.cache
+    return dataclasses.replace(TINY_TRAIN, **{**base, **changes})
 
 
 def test_lr_warms_up_then_decays_by_cosine():
@@ -91,6 +85,23 @@ def test_resume_continues_with_identical_state(shards, tmp_path, monkeypatch, em
         ]
 
     assert steps(whole) == steps(resumed) and len(steps(whole)) == 2
+
+
+@pytest.mark.slow
+def test_the_decoded_frame_cache_changes_no_loss(shards, tmp_path, capsys):
+    def run(name: str, **changes) -> list[dict]:
+        out = tmp_path / name
+        fit.fit(TINY_MODEL, _train_cfg(shards, out, epochs=2, **changes), device="cpu")
+        lines = (out / fit.METRICS).read_text().splitlines()
+        return [(m["train"], m["val"], m["val_metrics"]) for m in map(json.loads, lines)]
+
+    decoded = run("decoded", cache_gb=0)
+    assert "0 frames in the decoded-frame cache" in capsys.readouterr().out
+    filled = run("filled", num_workers=1)
+    assert "decoding 16 frames of 4 shards into the cache" in capsys.readouterr().out
+    hit = run("hit")
+    assert "16 frames in the decoded-frame cache" in capsys.readouterr().out
+    assert decoded == filled == hit
 
 
 @pytest.mark.slow

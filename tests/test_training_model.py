@@ -462,3 +462,31 @@ def test_frames_whose_speed_contradicts_the_traffic_label_weigh_traffic_context_
     del saved["traffic_context_weight"]
     assert TrainConfig.from_dict(saved).traffic_context_weight == 1.0
     assert TrainConfig().traffic_context_weight == 1.0
+
+
+@pytest.mark.parametrize("layout", [torch.channels_last, torch.contiguous_format])
+def test_pooled_pixel_lamps_equal_the_max_pool_of_the_full_maps(layout):
+    from torch import nn
+    from torch.nn import functional as F
+
+    from training.lamps import pooled_pixel_lamps
+
+    torch.manual_seed(0)
+    lamps = nn.Sequential(nn.Conv2d(3, 8, 1), nn.GELU())
+    nn.init.normal_(lamps[0].weight, std=1.0)  # outputs on both sides of GELU's minimum
+    # flat 8x8 cells of random colours plus noise: in some cells every output lies below
+    # GELU's minimum, where the cell's smallest output gives the largest GELU
+    cells = torch.randint(0, 256, (3, 3, 8, 8)).repeat_interleave(8, 2).repeat_interleave(8, 3)
+    image = (cells + torch.randint(-20, 21, cells.shape)).clamp(0, 255).to(torch.uint8)
+    x = ((image.float() / 255 - 0.45) / 0.225).contiguous(memory_format=layout)
+    z = lamps[0](x)
+    full = F.adaptive_max_pool2d(lamps(x), 8)  # the definition: GELU everywhere, then pool
+    fast = pooled_pixel_lamps(lamps, x, 8)
+    assert fast.shape == full.shape and torch.allclose(fast, full, atol=1e-5)
+    at_high = torch.isclose(full, F.gelu(F.adaptive_max_pool2d(z, 8)), atol=1e-6)
+    assert at_high.any() and not at_high.all()  # both of a cell's extremes occur
+    grad = torch.randn_like(full)
+    want = torch.autograd.grad(full, list(lamps.parameters()), grad)
+    got = torch.autograd.grad(fast, list(lamps.parameters()), grad)
+    for w, g in zip(want, got):
+        assert torch.allclose(w, g, rtol=1e-4, atol=1e-5)

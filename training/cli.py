@@ -83,6 +83,9 @@ TRAIN_FLAGS = {
     "traffic_context_weight": "traffic_context_weight",
     "ema": "ema_decay",
     "compile": "compile",
+    "cache_dir": "cache_dir",
+    "cache_gb": "cache_gb",
+    "threads": "threads",
 }
 MODEL_FLAGS = {
     "output_px": "output_px",
@@ -99,7 +102,8 @@ MODEL_FLAGS = {
     "traffic_residual": "traffic_residual",
     "traffic_residual_dropout": "traffic_residual_dropout",
 }
-RESUMABLE = {"shards", "out", "epochs", "workers", "compile"}  # may change on --resume
+# may change on --resume
+RESUMABLE = {"shards", "out", "epochs", "workers", "compile", "cache_dir", "cache_gb", "threads"}
 
 
 def _add_fit(p: argparse.ArgumentParser) -> None:
@@ -169,11 +173,31 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         default=None,
         help="torch.compile the model (default: off)",
     )
+    p.add_argument(
+        "--cache-dir",
+        metavar="DIR",
+        help="decoded-frame cache, safe to delete (default: $IIDSU_CACHE/decoded, else "
+        "~/.cache/iidsu/decoded)",
+    )
+    p.add_argument(
+        "--cache-gb",
+        type=_checked(float, lambda v: v >= 0, "0 or more"),
+        metavar="N",
+        help="bound of the decoded-frame cache in GB; frames past it are decoded every epoch "
+        "(0: no cache)",
+    )
+    p.add_argument(
+        "--threads",
+        type=_workers,
+        metavar="N",
+        help="intra-op CPU threads per process (0: the cores it may use / processes per machine)",
+    )
     p.add_argument("--device", choices=DEVICES, default="auto", help=DEVICE_HELP)
     p.add_argument(
         "--resume",
         action="store_true",
-        help="continue OUT/last.pt exactly; only --epochs, --shards, --workers, --compile may change",
+        help="continue OUT/last.pt exactly; only --epochs, --shards, --workers, --compile, "
+        "--cache-dir, --cache-gb, --threads may change",
     )
     p.add_argument(
         "--force",

@@ -190,6 +190,13 @@ class TrainConfig:
     zoom_out: float = 1.0
     zoom_out_probability: float = 0.5
     compile: bool = False  # torch.compile the model (worth it on a GPU, slow to start)
+    # Decoded-frame cache (training/cache.py): its directory ("": $IIDSU_CACHE/decoded, else
+    # ~/.cache/iidsu/decoded) and its bound in GB (0: off, every epoch decodes the shards).
+    cache_dir: str = ""
+    cache_gb: float = 32.0
+    # Intra-op CPU threads per process; 0: the cores this process may run on (its CPU
+    # affinity) divided among the processes of the machine (training/device.py `cpu_threads`).
+    threads: int = 0
     # Ours: decay of an exponential moving average of the weights, updated every step; the
     # average is what validation scores and last.pt's "model" holds (training/fit.py). 0 = off.
     ema_decay: float = 0.0

@@ -36,6 +36,8 @@ import schemas
 from schemas import codecs
 from schemas.dataset import DatasetError, shard_files
 from training.augment import zoom_out, zoom_scale
+from training.cache import ARRAYS as CACHED_ARRAYS
+from training.cache import CachedShard, open_entry
 from training.errors import UserError
 from training.targets import MIN_LIDAR_POINTS, render_density, visible_boxes
 
@@ -60,6 +62,9 @@ GROUND_T = "lidar_ground_t"
 """Schema 1.1's column of the current sweep's at-ground hits (256x256 uint8 1-channel PNG, the
 same BEV grid as `lidar_bev`): what the single-frame ablation needs instead of ch0, which sums
 three sweeps. Read only for that ablation."""
+BLOBS = ("image", "lidar_bev", "bev_semantic")
+"""The encoded columns a sample decodes (`decode_inputs`); what the cache (training/cache.py)
+holds decoded, so a cached shard is read without them."""
 DRIVABLE, LANE = schemas.BEV_CLASSES.index("drivable"), schemas.BEV_CLASSES.index("lane_marking")
 
 
@@ -135,8 +140,7 @@ def _row_arrays(table: pa.Table) -> dict:
     n = table.num_rows
     col = {name: table.column(name).chunk(0) for name in table.column_names}
     out = {name: col[name].to_pylist() for name in ("episode_id", "weather", "traffic_light")}
-    binary = ("image", "lidar_bev", "bev_semantic", GROUND_T)
-    out.update({name: col[name].to_pylist() for name in binary if name in col})
+    out.update(blob_arrays(table))
     out["frame"] = col["frame"].to_numpy()
     out["ego_speed"] = col["ego_speed"].to_numpy()
     out["stop_sign"] = col["stop_sign"].to_numpy(zero_copy_only=False)
@@ -213,6 +217,27 @@ def sensor_config(index: pd.DataFrame) -> dict | None:
     return json.loads(config) if config else None
 
 
+def blob_columns(single_frame_lidar: bool = False) -> list[str]:
+    """The encoded columns `decode_inputs` reads."""
+    return [*BLOBS, GROUND_T] if single_frame_lidar else list(BLOBS)
+
+
+def blob_arrays(table: pa.Table | pa.RecordBatch) -> dict[str, list[bytes]]:
+    """The encoded columns of `table` (those of BLOBS and GROUND_T it has) as lists of bytes."""
+    names = set(table.schema.names)
+    return {n: table.column(n).to_pylist() for n in (*BLOBS, GROUND_T) if n in names}
+
+
+def decode_inputs(rows: dict, i: int, output_px: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Row `i` of `blob_arrays` output decoded: the image and LiDAR the model reads
+    (`model_inputs`; the single-frame ablation's LiDAR when the rows carry `lidar_ground_t`)
+    and the BEV target (R, R) uint8 class ids (`downsample_bev`). What the cache stores."""
+    ground_t = rows[GROUND_T][i] if GROUND_T in rows else None
+    image, lidar = model_inputs(rows["image"][i], rows["lidar_bev"][i], ground_t)
+    bev = downsample_bev(codecs.decode_bev_semantic(rows["bev_semantic"][i]), output_px)
+    return image, lidar, bev
+
+
 def _sample(
     rows: dict, i: int, output_px: int, min_lidar_points: int = MIN_LIDAR_POINTS, zoom: float = 1.0
 ) -> dict:
@@ -226,13 +251,18 @@ def _sample(
     agents with >= `min_lidar_points` LiDAR returns at t; bev (R, R) uint8 class ids
     (`downsample_bev`); traffic (2,) float32 (red light, stop sign); weather () int64 index
     into schemas.WEATHERS. Keys: episode_id, frame.
+
+    Rows of a cached shard (`rows["cached"]`: the entry's arrays, `rows["file_row"]`: each
+    row's position in them) take image, lidar and bev from the cache instead of decoding.
     """
     a, b = rows["box_start"][i], rows["box_start"][i + 1]
     boxes = visible_boxes({k: v[a:b] for k, v in rows["boxes"].items()}, min_lidar_points)
     density = render_density(boxes, output_px)
-    bev = downsample_bev(codecs.decode_bev_semantic(rows["bev_semantic"][i]), output_px)
-    ground_t = rows[GROUND_T][i] if GROUND_T in rows else None
-    image, lidar = model_inputs(rows["image"][i], rows["lidar_bev"][i], ground_t)
+    if "cached" in rows:  # copies: the memory maps are read-only
+        r = rows["file_row"][i]
+        image, lidar, bev = (np.array(rows["cached"][name][r]) for name in CACHED_ARRAYS)
+    else:
+        image, lidar, bev = decode_inputs(rows, i, output_px)
     return {
         "image": zoom_out(image, zoom),
         "lidar": lidar,
@@ -335,17 +365,17 @@ class _Readers:
     buffered stream reads a column chunk page by page, so an open group holds a few pages
     (about a megabyte), not the whole group (tens of MB)."""
 
-    def __init__(self, columns: list[str]):
-        self.columns = columns
+    def __init__(self):
         self.open: dict[tuple[str, int], list] = {}  # unit -> [batches, table, first row of it]
 
-    def read(self, unit: _Unit, start: int, stop: int) -> pa.Table:
-        """Rows [start, stop) of `unit`'s row group; each call continues where the last ended."""
+    def read(self, unit: _Unit, start: int, stop: int, columns: list[str]) -> pa.Table:
+        """Rows [start, stop) of `unit`'s row group; each call continues where the last ended
+        (with the `columns` of the first call)."""
         key = (unit.path, unit.row_group)
         if key not in self.open:
             shard = pq.ParquetFile(unit.path, buffer_size=1 << 20)
             batches = shard.iter_batches(  # one thread: DataLoader workers are the parallelism
-                READ_ROWS, row_groups=[unit.row_group], columns=self.columns, use_threads=False
+                READ_ROWS, row_groups=[unit.row_group], columns=columns, use_threads=False
             )
             self.open[key] = [batches, [], 0]  # batch iterator, batches read ahead, their first row
         state = self.open[key]
@@ -389,6 +419,9 @@ class FrameStream(IterableDataset):
             at t (training/targets.py).
         zoom_out: (smallest factor, probability) of the camera zoom-out augmentation
             (training/augment.py), drawn per frame from seed, epoch and frame; None: none.
+        cache: shard path -> its entry in the decoded-frame cache (`cache.prepare`); the
+            frames of those shards are read decoded from it (the same samples), the others
+            decoded from the shards.
     """
 
     def __init__(
@@ -404,14 +437,17 @@ class FrameStream(IterableDataset):
         single_frame_lidar: bool = False,
         min_lidar_points: int = MIN_LIDAR_POINTS,
         zoom_out: tuple[float, float] | None = None,
+        cache: dict[str, CachedShard] | None = None,
     ):
         super().__init__()
         self.zoom_out = zoom_out
+        self.cache = cache or {}
         self.output_px, self.shuffle, self.seed = output_px, shuffle, seed
         self.buffer_size, self.rank, self.world = buffer_size, rank, world
         self.open_units = open_units
         self.single_frame_lidar, self.min_lidar_points = single_frame_lidar, min_lidar_points
         self.columns = input_columns(index, single_frame_lidar)
+        self.light_columns = [c for c in self.columns if c not in (*BLOBS, GROUND_T)]
         self.epoch = 0
         self.n_frames = len(index)
         self.units = [
@@ -482,19 +518,25 @@ class FrameStream(IterableDataset):
     def __iter__(self):
         info = get_worker_info()
         worker, n_workers = (info.id, info.num_workers) if info else (0, 1)
-        readers = _Readers(self.columns)
+        readers = _Readers()
 
         def read(unit: _Unit, rows: np.ndarray, start: int, stop: int) -> list:
+            entry = self.cache.get(unit.path)
+            cached = open_entry(entry.dir) if entry is not None else None
+            columns = self.columns if cached is None else self.light_columns
             if self.shuffle:
-                table = readers.read(unit, start, stop)
+                table = readers.read(unit, start, stop, columns)
                 if len(rows) < stop - start:  # another rank's rows in between (take: ~3 ms)
                     table = table.take(rows - start)
             else:  # whole row groups, in order
                 shard = pq.ParquetFile(unit.path)
-                table = shard.read_row_group(unit.row_group, columns=self.columns).take(rows)
+                table = shard.read_row_group(unit.row_group, columns=columns).take(rows)
             if not table.num_rows:
                 return []
             arrays = _row_arrays(table)
+            if cached is not None:
+                arrays["cached"] = cached
+                arrays["file_row"] = entry.row_group_starts[unit.row_group] + rows
             return [(arrays, i) for i in range(table.num_rows)]
 
         for arrays, i in self._order(read, worker, n_workers):

@@ -1,8 +1,9 @@
 """Where a run computes: the device, this process's place under DDP, bf16 autocast, and moving
-a batch there. Shared by `train fit`, `train eval`, `train analyze` and `drive`'s model policy."""
+a batch there, the CPU threads and the allocator. Shared by `train fit`, `train eval`, `train analyze` and `drive`'s model policy."""
 
 from __future__ import annotations
 
+import ctypes
 import os
 from contextlib import nullcontext
 from dataclasses import dataclass
@@ -65,3 +66,31 @@ def to_device(batch: dict, device: torch.device) -> dict:
             v = v.to(device, non_blocking=True, memory_format=fmt)
         moved[k] = v
     return moved
+
+
+def cpu_threads(requested: int = 0) -> int:
+    """Intra-op threads for this process: `requested`; else $OMP_NUM_THREADS if set (the
+    user's); else the cores its CPU affinity allows divided by the training processes on this
+    machine (torchrun's LOCAL_WORLD_SIZE). torch's own default counts the machine's cores, also
+    those a container or a sibling rank uses."""
+    if requested:
+        return requested
+    if os.environ.get("OMP_NUM_THREADS", "").isdigit():
+        return max(1, int(os.environ["OMP_NUM_THREADS"]))
+    local_world = int(os.environ.get("LOCAL_WORLD_SIZE", "1"))
+    return max(1, len(os.sched_getaffinity(0)) // local_world)
+
+
+def tune_allocator() -> None:
+    """Let glibc's malloc keep freed memory for the next step instead of handing it back to
+    the kernel: a training step frees and reallocates the same few-MB tensors, and each fresh
+    mapping costs a page fault per 4 kB. Tiny config, one thread: ~10,000 faults and 30-40 ms
+    of system time a step before, ~1,500 and 11-17 ms after (docs/speed.md). No-op off glibc."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return
+    m_trim_threshold, m_top_pad, m_mmap_threshold = -1, -2, -3  # glibc's <malloc.h>
+    libc.mallopt(m_mmap_threshold, 32 << 20)  # glibc's largest: below it, from the heap
+    libc.mallopt(m_trim_threshold, 1 << 30)  # keep up to 1 GB of free heap
+    libc.mallopt(m_top_pad, 64 << 20)  # grow the heap 64 MB at a time

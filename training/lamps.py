@@ -53,9 +53,51 @@ class LampMaps(nn.Module):
     def forward(self, image: torch.Tensor, first_stage: torch.Tensor) -> torch.Tensor:
         """image (B, 3, H, W) normalised; first_stage (B, dims[0], H / 4, W / 4), the camera's
         first stage before fusion -> (B, channels, g, g): the stage maps, then the pixel maps."""
-        maps = [] if self.stage is None else [self.stage(first_stage)]
-        maps += [] if self.pixel is None else [self.pixel(image)]
-        return torch.cat([F.adaptive_max_pool2d(m, self.grid) for m in maps], dim=1)
+        maps = (
+            []
+            if self.stage is None
+            else [F.adaptive_max_pool2d(self.stage(first_stage), self.grid)]
+        )
+        maps += [] if self.pixel is None else [pooled_pixel_lamps(self.pixel, image, self.grid)]
+        return torch.cat(maps, dim=1)
+
+
+def pooled_pixel_lamps(pixel_lamp: nn.Sequential, x: torch.Tensor, px: int) -> torch.Tensor:
+    """`adaptive_max_pool2d(pixel_lamp(x), px)` for `pixel_lamp` = (1x1 Conv2d, GELU), without
+    the full-resolution GELU and its backward (tiny config, one thread: 12 against 32 ms of CPU
+    a training step, docs/speed.md).
+
+    GELU falls, then rises (one minimum, at -0.75), so its maximum over a cell is at the
+    cell's largest or smallest conv output: the pooled maps are GELU of those two, the larger
+    one. The conv runs once without autograd to find them; their values are recomputed from
+    the input pixels they come from, so the gradient reaches the conv's weights through the
+    pixel each cell selects, as the max-pool's does.
+
+    Args:
+        x: (B, 3, H, W) float, the normalised camera image (needs no gradient).
+        px: side of the pooled maps; divides H and W.
+    Returns:
+        (B, k, px, px), k = the conv's output channels.
+    """
+    conv = pixel_lamp[0]
+    B, C, H, W = x.shape
+    k = conv.out_channels
+    weight = conv.weight.view(k, C)
+    chunk = max(1, (16 << 20) // (2 * k * H * W * x.element_size()))  # outputs <= 16 MB
+    with torch.no_grad():  # flat indices of the cells' largest z and largest -z, one conv
+        both = torch.cat([weight, -weight]).view(2 * k, C, 1, 1)
+        index = torch.cat(
+            [
+                F.adaptive_max_pool2d(F.conv2d(part, both), px, return_indices=True)[1]
+                for part in x.split(chunk)
+            ]
+        )  # (B, 2k, px, px)
+    index = index.reshape(B, 2 * k * px * px, 1).expand(B, -1, C)
+    pixels = x.permute(0, 2, 3, 1).reshape(B, H * W, C)  # a view of channels_last memory
+    chosen = torch.gather(pixels, 1, index).view(B, 2, k, px, px, C)  # the cells' pixels
+    z = (chosen * weight.view(1, 1, k, 1, 1, C)).sum(-1) + conv.bias.view(1, 1, k, 1, 1)
+    lamps = pixel_lamp[1](z)  # (B, 2, k, px, px): GELU at the largest and the smallest
+    return torch.maximum(lamps[:, 0], lamps[:, 1])
 
 
 class CameraTrafficHead(TrafficRuleHead):
