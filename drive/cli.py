@@ -21,7 +21,12 @@ from schemas import cli  # noqa: E402
 
 
 def _add_eval(e: argparse.ArgumentParser) -> None:
-    e.add_argument("--policy", required=True, help="expert | constant | ckpt:PATH")
+    e.add_argument(
+        "--policy",
+        required=True,
+        help="expert | expert-plan (the expert's waypoints through the model's controller) | "
+        "constant | ckpt:PATH",
+    )
     e.add_argument("--routes", required=True, type=Path, help="route file (drive routes)")
     e.add_argument("--out", required=True, type=Path, help="results directory")
     e.add_argument("--workers", type=int, default=1, help="routes driven in parallel")
@@ -57,6 +62,14 @@ def _add_eval(e: argparse.ArgumentParser) -> None:
         "--no-creep",
         action="store_true",
         help="no creep: a policy that stands 55 s is not pushed forward (TransFuser's rule)",
+    )
+    e.add_argument(
+        "--lateral",
+        choices=("pursuit", "pid"),
+        default="pursuit",
+        help="how the controller steers a non-privileged policy along its waypoints: pure "
+        "pursuit on the planned trajectory, or TransFuser's PID on the first two waypoints "
+        "(default: %(default)s; drive/controller.py)",
     )
     e.add_argument(
         "--baseline", type=Path, default=None, help="an expert run's --out: traffic delay vs it"

@@ -35,6 +35,7 @@ from datagen.world import TELEPORT_S
 from drive import score
 from drive.controller import (
     Controller,
+    ControllerConfig,
     Creep,
     CreepConfig,
     Plan,
@@ -67,6 +68,7 @@ class Task:
     net_override: str | None = None
     max_sim_s: float | None = None  # stop after this much simulated time (smoke runs)
     creep: bool = True  # a policy that stands still creeps (drive.controller.Creep)
+    lateral: str = "pursuit"  # the controller's steering (drive.controller.ControllerConfig)
 
 
 def _write_json(path: Path, doc: dict) -> None:
@@ -142,7 +144,7 @@ def drive_route(
         frame = world.state()
         timing["setup"] = time.perf_counter() - t0  # the world's start-up (warm-up) included
         vehicle = VehicleState(frame.ego.pose, frame.ego.speed_mps)
-        controller = Controller()
+        controller = Controller(ControllerConfig(lateral=task.lateral))
         plan: Plan | None = None
         waypoints = None
         steps_per_plan = round(PLAN_PERIOD_S / STEP_S)
@@ -182,6 +184,8 @@ def drive_route(
                     waypoints = model.plan(frame, image_jpeg, lidar_png, ground_png)
                 elif spec.kind == "constant":
                     waypoints = constant_waypoints()
+                elif spec.kind == "expert-plan":  # None off the network: the last plan holds
+                    waypoints = world.expert_waypoints(frame)
                 if waypoints is not None:
                     plan = Plan.from_ego(frame.time_s, frame.ego.pose, waypoints)
                 timing["policy"] += time.perf_counter() - t
@@ -191,7 +195,8 @@ def drive_route(
             if plan is not None:
                 push = creep.step(vehicle.speed_mps, clear_ahead) if creep is not None else 0.0
                 aim = plan.at(frame.time_s, vehicle.pose)
-                ctrl = controller.control(aim, vehicle.speed_mps, creep_throttle=push)
+                ahead = plan.ahead(frame.time_s, vehicle.pose)
+                ctrl = controller.control(aim, vehicle.speed_mps, push, ahead)
                 vehicle = bicycle_step(vehicle, ctrl, STEP_S)
                 world.place_ego(vehicle.pose, vehicle.speed_mps)
             world.step()
@@ -394,6 +399,7 @@ def run(args) -> int:
             str(args.net) if args.net else None,
             max_sim,
             creep=not args.no_creep,
+            lateral=args.lateral,
         )
         for i, r in enumerate(routes)
     ]

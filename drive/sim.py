@@ -13,6 +13,8 @@ from __future__ import annotations
 from collections import deque
 from pathlib import Path
 
+import numpy as np
+
 from datagen.state import FrameState, Pose
 from drive.routes import Route
 
@@ -53,6 +55,12 @@ class DrivenWorld:
     def truth(self):
         """datagen.world.EgoTruth after the last step."""
         return self._world.truth()
+
+    def expert_waypoints(self, frame: FrameState) -> np.ndarray | None:
+        """(4, 2) the privileged expert's plan from the ego's state now (World.expert_plan),
+        ego frame at `frame` (its state now), m; None off the network."""
+        plan = self._world.expert_plan()
+        return None if plan is None else frame.ego.pose.ego_from_world(plan[0])
 
     def place_ego(self, pose: Pose, speed_mps: float) -> None:
         """Where the ego is at the end of the next step (world frame, box centre)."""

@@ -202,10 +202,15 @@ def model_inputs(
 
 def sensor_config(index: pd.DataFrame) -> dict | None:
     """The sensor configuration the frames of `index` were recorded with (the shards'
-    iidsu.config_json), None if they carry none; UserError if the shards disagree."""
-    configs = {
+    iidsu.config_json without what shapes only the labels, schemas.sensor_part), None if they
+    carry none; UserError if the shards disagree."""
+    raw = {
         (pq.read_schema(f).metadata or {}).get(schemas.META_CONFIG_JSON.encode())
         for f in index.path.unique()
+    }
+    configs = {
+        None if c is None else json.dumps(schemas.sensor_part(json.loads(c)), sort_keys=True)
+        for c in raw
     }
     if len(configs) > 1:
         raise UserError("the shards were recorded with different sensor configurations")
