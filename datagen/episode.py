@@ -266,11 +266,9 @@ def _process(
         pose = labels.rig_pose(frame.ego.pose, *rig)
         seen = replace(frame, ego=replace(frame.ego, pose=pose))
         now = sense.sweep(scene, seen)
-    counts = sense.lidar_counts([now, *(sweeps[k - j] for j in range(1, HISTORY + 1))])
-    bev, ground_t = lidar.lidar_bev_channels(counts), lidar.ground_channel(counts)
-    timer.lap("lidar")
-    image = sense.image(scene, seen)
-    timer.lap("camera")
+    encoded = encode_sensors(
+        sense, scene, seen, [now, *(sweeps[k - j] for j in range(1, HISTORY + 1))], timer
+    )
     future = states[k + 1 : k + 1 + FUTURE]
     row = labels.frame_labels(frame, future, now.actor_hits, rig)
     semantic = labels.bev_semantic(sense.static.label_map, seen.ego.pose)
@@ -280,10 +278,33 @@ def _process(
         town=spec.town,
         weather=spec.weather,
         behaviour=spec.behaviour,
-        image=codecs.encode_image(image, sense.config.jpeg_quality),
-        lidar_bev=codecs.encode_lidar_bev(bev),
-        lidar_ground_t=codecs.encode_lidar_ground(ground_t),
+        **encoded,
         bev_semantic=codecs.encode_bev_semantic(semantic),
     )
     timer.lap("encode")
     return row
+
+
+def encode_sensors(
+    sense: Sensors,
+    scene,
+    frame: FrameState,
+    sweeps: list[lidar.Sweep],
+    timer: _Timer | None = None,
+) -> dict[str, bytes]:
+    """The sensor columns of one frame as the shards hold them (image, lidar_bev,
+    lidar_ground_t): the camera seen from `frame`'s ego pose in `scene`, and the LiDAR BEV of
+    `sweeps` (at t, t-1, t-2, newest first: HISTORY + 1) in that pose's frame. The one encoder
+    of a frame: the build and closed-loop driving (drive/sim.py) both call it."""
+    counts = sense.lidar_counts(sweeps)
+    bev, ground_t = lidar.lidar_bev_channels(counts), lidar.ground_channel(counts)
+    if timer is not None:
+        timer.lap("lidar")
+    image = sense.image(scene, frame)
+    if timer is not None:
+        timer.lap("camera")
+    return {
+        "image": codecs.encode_image(image, sense.config.jpeg_quality),
+        "lidar_bev": codecs.encode_lidar_bev(bev),
+        "lidar_ground_t": codecs.encode_lidar_ground(ground_t),
+    }

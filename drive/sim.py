@@ -109,17 +109,12 @@ class SensorStream:
     def encode(self, frame: FrameState) -> tuple[bytes, bytes, bytes]:
         """(camera JPEG, LiDAR BEV PNG, current ground-hits PNG) of `frame`; call once per
         instant, in order."""
-        from datagen.sensors import lidar
-        from schemas import codecs
+        from datagen.episode import encode_sensors
 
         sense = self.sensors
         scene = sense.scene(frame)
         self.last_sweep = sense.sweep(scene, frame)
         self._sweeps.appendleft(self.last_sweep)  # [t, t-1, t-2]
         hist = list(self._sweeps) + [self._sweeps[-1]] * (self._sweeps.maxlen - len(self._sweeps))
-        counts = sense.lidar_counts(hist)
-        return (
-            codecs.encode_image(sense.image(scene, frame), self.jpeg_quality),
-            codecs.encode_lidar_bev(lidar.lidar_bev_channels(counts)),
-            codecs.encode_lidar_ground(lidar.ground_channel(counts)),
-        )
+        e = encode_sensors(sense, scene, frame, hist)
+        return e["image"], e["lidar_bev"], e["lidar_ground_t"]

@@ -30,9 +30,9 @@ EPISODES = (
     ("grid3-3-0", 3, "sunny", "normal", 5),
     ("grid3-8-1", 8, "rainy", "aggressive", 3),
 )
-EXPECTED_SHA256 = {  # scene v2, data v10, schema 1.1
-    "grid3-3-0": "343e335d600ce60fc839c94e23465858c3e2f7af86f47e38596cefd71144ed78",
-    "grid3-8-1": "4e047532f6dc9d16f7ffb661d2d33384c8c509f6a01eee24359441c46dfacdd0",
+EXPECTED_SHA256 = {  # scene v2, data v10, schema 1.2
+    "grid3-3-0": "1cb98082f49ab67ded1ee3bac5a436869136d677597ae12850c3d8f5317c3cfb",
+    "grid3-8-1": "37eada64ae72674eb18544cb1cfcbb4424faad5fb1e7de0f6198096b4cd2b76f",
 }
 
 
