@@ -153,13 +153,17 @@ def frame_labels(
     future: Sequence[FrameState],
     lidar_hits: dict[str, int] | None = None,
     rig: tuple[float, float] = (0.0, 0.0),
+    waypoints_ego: Sequence[float] | None = None,
 ) -> dict:
     """Every non-sensor column of one row (schemas.FIELDS) except the episode's identity
     (episode_id, frame, town, weather, behaviour) and the binary sensor columns.
 
     `rig`: (shift_m, yaw_rad) of the sensor rig from the ego (`rig_pose`; recovery frames,
     datagen/episode.py): every column in the ego frame is then in the rig's frame, as if the
-    ego stood there, while ego_x/ego_y/ego_yaw stay the ego's own pose."""
+    ego stood there, while ego_x/ego_y/ego_yaw stay the ego's own pose. `waypoints_ego` (8
+    floats, the ego frame at t) replaces the recorded future's waypoints: on-policy frames are
+    labelled with the expert's plan from where the policy put the ego (drive/collect.py), and
+    then `future` need only hold the boxes' two future states."""
     pose = frame.ego.pose
     seen = frame
     if rig != (0.0, 0.0):
@@ -175,7 +179,9 @@ def frame_labels(
         "rig_yaw_rad": float(rig[1]),
         "command": frame.command,
         "target_point": [float(tp[0]), float(tp[1])],
-        "waypoints": waypoints(seen, future),
+        "waypoints": (
+            waypoints(seen, future) if waypoints_ego is None else [float(v) for v in waypoints_ego]
+        ),
         "traffic_light": frame.traffic_light,
         "light_distance_m": frame.light_distance_m,
         "stop_sign": bool(frame.stop_sign),

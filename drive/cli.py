@@ -4,6 +4,7 @@
     drive eval --policy ckpt:runs/demo/last.pt --routes drive/routes/heldout_short.json \\
         --workers 2 --out runs/eval_heldout
     drive swap --policy ckpt:runs/demo/last.pt --town downtown --out runs/swap   # Fig. 6
+    drive collect --policy ckpt:runs/demo/last.pt --towns 8 --frames 4000 --out runs/dagger1
 """
 
 from __future__ import annotations
@@ -100,6 +101,18 @@ def _add_routes(p: argparse.ArgumentParser) -> None:
     routes.add_arguments(p)
 
 
+def _add_collect(p: argparse.ArgumentParser) -> None:
+    from drive import collect
+
+    collect.add_arguments(p)
+
+
+def _collect(args) -> int:
+    from drive import collect
+
+    return collect.run(args)
+
+
 def _add_swap(p: argparse.ArgumentParser) -> None:
     from drive import swap
 
@@ -111,6 +124,12 @@ COMMANDS = (
     cli.Command("eval", "drive a route set with a policy and score it", _add_eval, _eval),
     cli.Command(
         "swap", "one scene in two weathers: what the model plans (Fig. 6)", _add_swap, _swap
+    ),
+    cli.Command(
+        "collect",
+        "on-policy data: a policy drives, the expert labels every frame (DAgger, DART)",
+        _add_collect,
+        _collect,
     ),
 )
 

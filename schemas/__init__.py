@@ -226,7 +226,7 @@ def schema(metadata: dict[str, str] | None = None) -> pa.Schema:
 SCHEMA = schema()
 
 
-LABEL_ONLY_CONFIG_KEYS = ("recovery_share", "recovery_shift_m", "recovery_yaw_deg")
+LABEL_ONLY_CONFIG_KEYS = ("recovery_share", "recovery_shift_m", "recovery_yaw_deg", "driver")
 """Keys of iidsu.config_json that shape a build's labels but not what its sensors see: shards
 that differ only in them were sensed alike (training mixes them, drive accepts the model)."""
 

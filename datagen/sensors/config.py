@@ -38,6 +38,9 @@ class SensorConfig:
             the way back; the rig's shift is uniform in +-recovery_shift_m to the side and its
             turn in +-recovery_yaw_deg. Like target_point it shapes the labels, not what a
             sensor sees in closed loop (schemas.LABEL_ONLY_CONFIG_KEYS).
+        driver: who drove the ego: "expert" (the recorded expert, waypoints from its future), or
+            what `drive collect` says of the policy that drove it (on-policy frames labelled
+            with the expert's plan); label-only too.
     """
 
     lidar: lidar.LidarConfig = field(default_factory=lidar.LidarConfig)
@@ -50,6 +53,7 @@ class SensorConfig:
     recovery_share: float = 0.0
     recovery_shift_m: float = 1.0
     recovery_yaw_deg: float = 5.0
+    driver: str = "expert"
 
     def __post_init__(self):
         if self.raycaster not in RAYCASTERS:
