@@ -49,6 +49,7 @@ from schemas import FRAME_PERIOD_S, outputs
 
 CREEP_STUCK_S = CreepConfig().stuck_s
 PLAN_PERIOD_S = FRAME_PERIOD_S  # the policy plans at the data's rate (2 Hz)
+STUCK_MPS = 0.1  # slower than this, a policy stands (counted at every plan, 2 Hz)
 STEP_S = 0.1  # SUMO step: the controller and the infraction tracker run every step
 # The expert's world gives up on an ego that stands 80 s or that SUMO teleports out of a jam:
 # for the score that is the agent blocked.
@@ -150,6 +151,7 @@ def drive_route(
         steps_per_plan = round(PLAN_PERIOD_S / STEP_S)
         max_sim_s = task.max_sim_s
         k = 0
+        standing_s = stuck_s = 0.0  # standing, and standing where the expert would drive on
         while True:
             t = time.perf_counter()
             truth = world.truth()
@@ -162,6 +164,9 @@ def drive_route(
             if k % steps_per_plan == 0:
                 if progress is not None:
                     progress(0)
+                if external and vehicle.speed_mps < STUCK_MPS:
+                    standing_s += PLAN_PERIOD_S
+                    stuck_s += PLAN_PERIOD_S if world.expert_would_go() else 0.0
                 t = time.perf_counter()
                 image_jpeg = lidar_png = ground_png = None
                 if encode:
@@ -241,6 +246,8 @@ def drive_route(
         "sim_s": round(sim_s, 2),
         "ended": tracker.ended or (f"world_{world_end}" if world_end else "max_sim_s"),
         "creeps": creep.creeps if creep is not None else 0,
+        "standing_s": round(standing_s, 1),
+        "stuck_s": round(stuck_s, 1),
         "end_detail": world_detail if tracker.ended is None else "",
         "timing": {k: round(v, 4) for k, v in timing.items()},
     }
@@ -318,6 +325,9 @@ def summary_doc(name: str, docs: list[dict], baseline: dict[str, dict] | None = 
         "traffic_delay_rate_mean": float(np.mean([_delay_rate(d) for d in docs])),
         "sim_s": float(sum(d["sim_s"] for d in docs)),
         "creeps": int(sum(d.get("creeps", 0) for d in docs)),
+        # inertia: seconds standing where the privileged expert would drive on, per route
+        "stuck_s_mean": float(np.mean([d.get("stuck_s", 0.0) for d in docs])),
+        "standing_s_mean": float(np.mean([d.get("standing_s", 0.0) for d in docs])),
         "routes_with_creeps": int(sum(d.get("creeps", 0) > 0 for d in docs)),
         "wall_s": float(sum(d["timing"]["total"] for d in docs)),
     }
@@ -347,6 +357,11 @@ def format_summary(doc: dict) -> str:
     if doc.get("traffic_delay_rate_vs_baseline_mean") is not None:
         extra += f" ({doc['traffic_delay_rate_vs_baseline_mean']:+.2f} vs the baseline)"
     lines.append(extra)
+    if doc.get("stuck_s_mean"):
+        lines.append(
+            f"stood {doc['stuck_s_mean']:.1f} s per route where the expert would have driven on "
+            f"(of {doc['standing_s_mean']:.1f} s standing)"
+        )
     if doc.get("creeps"):
         lines.append(
             f"{doc['creeps']} creep(s) in {doc['routes_with_creeps']} route(s): stood "

@@ -18,6 +18,8 @@ import numpy as np
 from datagen.state import FrameState, Pose
 from drive.routes import Route
 
+EXPERT_GO_MPS = 1.0  # the expert "would go" when its target speed is above this
+
 
 class DrivenWorld:
     """Context manager: `state()`, `truth()`, `place_ego(pose, speed)` (external only),
@@ -55,6 +57,12 @@ class DrivenWorld:
     def truth(self):
         """datagen.world.EgoTruth after the last step."""
         return self._world.truth()
+
+    def expert_would_go(self) -> bool:
+        """Whether the privileged expert, in the ego's place now, would drive on (its target
+        speed is above EXPERT_GO_MPS): a policy standing then is stuck, not waiting."""
+        plan = self._world.expert_plan()
+        return plan is not None and plan[1].target_speed_mps > EXPERT_GO_MPS
 
     def expert_waypoints(self, frame: FrameState) -> np.ndarray | None:
         """(4, 2) the privileged expert's plan from the ego's state now (World.expert_plan),
