@@ -74,6 +74,7 @@ TRAIN_FLAGS = {
     "traffic_context_weight": "traffic_context_weight",
     "ema": "ema_decay",
     "compile": "compile",
+    "init": "init",
 }
 MODEL_FLAGS = {
     "output_px": "output_px",
@@ -93,7 +94,11 @@ RESUMABLE = {"shards", "out", "epochs", "workers", "compile"}  # may change on -
 
 
 def _add_fit(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shards", metavar="DIR", help="shard directory or .parquet file")
+    p.add_argument(
+        "--shards",
+        metavar="DIR",
+        help="shard directory or .parquet file, or several comma-separated",
+    )
     p.add_argument(
         "--config", choices=sorted(PRESETS), help="preset: paper (default) or tiny (for CPUs)"
     )
@@ -200,6 +205,12 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         help="torch.compile the model (default: off)",
     )
     p.add_argument("--device", choices=DEVICES, default="auto", help=DEVICE_HELP)
+    p.add_argument(
+        "--init",
+        metavar="CKPT",
+        help="start from this checkpoint's weights (fine-tuning; the optimizer and schedule "
+        "start afresh; --config and the model flags must describe its model)",
+    )
     p.add_argument(
         "--resume",
         action="store_true",
