@@ -59,3 +59,25 @@ def test_collect_refuses_a_policy_that_cannot_drive_itself(tmp_path, capsys):
     argv = ["collect", "--policy", "expert-plan", "--beta", "2", "--town", "grid_small"]
     assert cli.main(argv + ["--out", str(tmp_path / "y")]) == 2
     assert "--beta must be in [0, 1]" in capsys.readouterr().err
+
+
+def test_a_checkpoint_drives_and_the_expert_labels(tmp_path):
+    """A (random) model drives half the plans; every row still carries the expert's plan."""
+    torch = pytest.importorskip("torch")
+    from datagen.sensors.config import SensorConfig
+    from training.config import PRESETS
+    from training.model import IIDSU
+
+    cfg = PRESETS["tiny"][0]
+    ckpt = tmp_path / "m.pt"
+    state = {"model": IIDSU(cfg).state_dict(), "model_config": cfg.to_dict()}
+    torch.save({**state, "sensor_config": SensorConfig().to_dict()}, ckpt)
+    out = tmp_path / "c"
+    argv = ["collect", "--policy", f"ckpt:{ckpt}", "--beta", "0.5", "--town", "grid_small"]
+    argv += ["--frames", "8", "--episode-seconds", "4", "--seed", "5", "--workers", "1"]
+    assert cli.main(argv + ["--out", str(out), "--no-progress", "--device", "cpu"]) == 0
+    df = pd.read_parquet(out)
+    assert len(df) == 8
+    f = sorted(out.rglob("*.parquet"))[0]
+    driver = json.loads(pq.read_schema(f).metadata[schemas.META_CONFIG_JSON.encode()])["driver"]
+    assert driver.startswith("ckpt:m.pt@") and driver.endswith("beta=0.5")
