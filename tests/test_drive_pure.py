@@ -374,7 +374,7 @@ def test_pure_pursuit_steers_a_circle_at_its_curvature():
 
     veh, radius = VehicleConfig(), 12.0
     rear = np.array([-veh.rear_to_centre_m, 0.0])
-    a = np.linspace(0.0, 1.5, 40)  # a left turn starting at the rear axle, heading +x
+    a = np.linspace(0.0, 1.5, 400)  # a left turn starting at the rear axle, heading +x
     path = rear + radius * np.stack([np.sin(a), 1.0 - np.cos(a)], axis=1)
     steer = pursuit_steer(path, 5.0, ControllerConfig())
     assert steer * veh.max_steer_rad == pytest.approx(math.atan(veh.wheelbase_m / radius), rel=1e-3)
