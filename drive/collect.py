@@ -20,6 +20,14 @@ stands or wanders moving along the route, so the frames cover its mistakes witho
 one for a whole episode. `--policy expert-plan` with `--beta 0` collects the expert's plan
 driven through the controller (the controller's own state distribution).
 
+`--noise P` perturbs whoever drives, as DART does (Laskey et al., CoRL 2017: noise injected
+into the supervisor while it drives, its corrections recorded): at each 2 Hz plan a
+perturbation starts with probability P (none while one runs), either a drift (`Noise`: the
+driven plan is moved sideways, up to `drift_m`, in and out over `drift_s`) or a hesitation (the
+car is held standing for 1-`hold_s` s, wherever it is). The labels stay the expert's plan from
+each state, so the frames show the way back to the lane's centre and the start from standstill
+on a clear road, which the expert's own data never does (it never stands without a reason).
+
 An episode ends when its frames are done, when SUMO takes the ego out, or when the ego has been
 off the road network (no expert plan) for OFF_NETWORK_S; frames off the network get no row.
 Episodes, seeds, towns and weathers come from the build's planner (datagen/dataset/plan.py),
@@ -30,7 +38,9 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import math
 from collections import deque
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -43,16 +53,66 @@ STEP_S = 0.1  # the world's step: the controller runs every step
 _MODELS: dict = {}  # (checkpoint, device) -> drive.policy.ModelPolicy of this process
 
 
-def driver_name(spec, beta: float) -> str:
-    """What the shards' `driver` says: the policy (a checkpoint by its file's sha256) and beta."""
+@dataclass(frozen=True)
+class Noise:
+    """DART-style perturbations of the driver (module docstring).
+
+    Attributes:
+        rate: probability that a perturbation starts at a 2 Hz plan (0: none).
+        drift_m: largest sideways shift of a drift, m (uniform in +-[drift_m / 3, drift_m]).
+        drift_s: a drift's length, s (in over the first half, out over the second).
+        hold_s: a hesitation holds the car standing for uniform [1, hold_s] s.
+        hold_share: the share of perturbations that are hesitations.
+    """
+
+    rate: float = 0.0
+    drift_m: float = 1.5
+    drift_s: float = 4.0
+    hold_s: float = 4.0
+    hold_share: float = 0.5
+
+
+class Perturbation:
+    """The driver's perturbation over time (stateful, one per episode, its own stream)."""
+
+    def __init__(self, noise: Noise, rng: np.random.Generator):
+        self.noise, self.rng = noise, rng
+        self.kind, self.left_s, self.length_s, self.offset_m = "", 0.0, 0.0, 0.0
+
+    def plan(self, waypoints: np.ndarray) -> np.ndarray:
+        """The driven (4, 2) waypoints (ego frame) at this 2 Hz plan instead of `waypoints`."""
+        n = self.noise
+        if self.left_s <= 0.0 and n.rate > 0.0 and self.rng.random() < n.rate:
+            if self.rng.random() < n.hold_share:
+                self.kind, self.length_s = "hold", float(self.rng.uniform(1.0, n.hold_s))
+            else:
+                size = self.rng.uniform(n.drift_m / 3.0, n.drift_m) * self.rng.choice([-1, 1])
+                self.kind, self.length_s, self.offset_m = "drift", n.drift_s, float(size)
+            self.left_s = self.length_s
+        if self.left_s <= 0.0:
+            return waypoints
+        self.left_s -= PLAN_PERIOD_S
+        if self.kind == "hold":
+            return np.zeros_like(waypoints)
+        done = 1.0 - self.left_s / self.length_s  # 0 .. 1 over the drift
+        out = np.array(waypoints, dtype=np.float64)
+        out[:, 1] += self.offset_m * math.sin(math.pi * min(done, 1.0))
+        return out
+
+
+def driver_name(spec, beta: float, noise: Noise) -> str:
+    """What the shards' `driver` says: the policy (a checkpoint by its file's sha256), beta and
+    the noise."""
     name = spec.kind
     if spec.kind == "ckpt":
         digest = hashlib.sha256(Path(spec.path).read_bytes()).hexdigest()[:16]
         name = f"ckpt:{Path(spec.path).name}@{digest}"
-    return f"{name} beta={beta:g}"
+    return f"{name} beta={beta:g}" + (f" noise={noise.rate:g}" if noise.rate > 0 else "")
 
 
-def policy_episode(episode, sensors, progress, *, policy, beta: float, nets: dict[str, str]):
+def policy_episode(
+    episode, sensors, progress, *, policy, beta: float, nets: dict[str, str], noise: Noise = Noise()
+):
     """Drive one planned episode (datagen.dataset.plan.Episode) with `policy` and return its
     datagen.episode.EpisodeResult (the build's runner: datagen.dataset.build.episode_task)."""
     import pyarrow as pa
@@ -71,6 +131,9 @@ def policy_episode(episode, sensors, progress, *, policy, beta: float, nets: dic
     static = load_static_scene(net)
     sense = Sensors(static, sensors, episode.weather, episode_rng(episode.seed))
     mix = np.random.default_rng(np.random.SeedSequence([episode.seed, 0xDA6]))
+    perturb = Perturbation(
+        noise, np.random.default_rng(np.random.SeedSequence([episode.seed, 0xDA7]))
+    )
     model = None
     if policy.kind == "ckpt":
         key = (policy.path, policy.device)
@@ -116,6 +179,7 @@ def policy_episode(episode, sensors, progress, *, policy, beta: float, nets: dic
                 else:
                     expert_plans += label is not None
                 if waypoints is not None:
+                    waypoints = perturb.plan(waypoints)
                     plan = Plan.from_ego(frame.time_s, frame.ego.pose, waypoints)
                 reason = expert[1].reason if expert is not None else "none"
                 full = len(sweeps) > HISTORY
@@ -198,6 +262,14 @@ def add_arguments(p) -> None:
         help="probability that a 2 Hz plan is the expert's instead of the policy's (DAgger's "
         "mixture; default: %(default)s)",
     )
+    p.add_argument(
+        "--noise",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="DART-style perturbations of the driver: probability per 2 Hz plan that a drift "
+        "beside the lane or a hesitation (standing) starts (default: %(default)s, none)",
+    )
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
     build.add_arguments(p)
 
@@ -215,6 +287,9 @@ def run(args) -> int:
         raise UserError(f"--policy {args.policy}: drive collect takes ckpt:PATH or expert-plan")
     if not 0.0 <= args.beta <= 1.0:
         raise UserError(f"--beta must be in [0, 1], got {args.beta}")
+    if not 0.0 <= args.noise <= 1.0:
+        raise UserError(f"--noise must be in [0, 1], got {args.noise}")
+    noise = Noise(rate=args.noise)
     cfg = build.config_from_args(args)
     sensors = cfg.sensors
     if sensors.driver != "expert":
@@ -225,11 +300,10 @@ def run(args) -> int:
 
         check_sensor_config(load_checkpoint(spec.path), sensors.to_dict(), spec.path)
     cfg = dataclasses.replace(
-        cfg, sensors=dataclasses.replace(sensors, driver=driver_name(spec, args.beta))
+        cfg, sensors=dataclasses.replace(sensors, driver=driver_name(spec, args.beta, noise))
     )
-    runner = functools.partial(
-        policy_episode, policy=spec, beta=args.beta, nets={t.name: t.net_path for t in cfg.towns}
-    )
+    nets = {t.name: t.net_path for t in cfg.towns}
+    runner = functools.partial(policy_episode, policy=spec, beta=args.beta, nets=nets, noise=noise)
     options = build.options_from_args(args)
     outputs.check_dir(args.out)
     report = build.build(
