@@ -5,7 +5,8 @@
 
 Steps (each skipped when its output is already there, so a stopped check resumes):
 1. `datagen build` of --frames in the eight training towns (--recovery: the share of recovery
-   frames, sensed from a shifted rig; data/README.md);
+   frames, sensed from a shifted rig; data/README.md), and `drive collect` of --dart-frames
+   driven by the expert's plan with DART-style perturbations (--noise; drive/collect.py);
 2. per training seed, `train fit --config tiny` (--val-towns held out of training), then
    --dagger-rounds rounds of `drive collect` (the model drives, the expert labels; --beta) and a
    fine-tune on the union (`train fit --init`);
@@ -78,6 +79,8 @@ def main() -> None:
     p.add_argument("--frames", type=int, default=16000)
     p.add_argument("--build-seed", type=int, default=41)
     p.add_argument("--recovery", type=float, default=0.5, help="share of recovery frames")
+    p.add_argument("--dart-frames", type=int, default=4000, help="0: no perturbed driving")
+    p.add_argument("--noise", type=float, default=0.15, help="drive collect --noise")
     p.add_argument("--epochs", type=int, default=6)
     p.add_argument("--val-towns", default="downtown")
     p.add_argument("--seeds", default="0", help="training seeds, comma-separated")
@@ -103,27 +106,39 @@ def main() -> None:
              "--workers", args.workers, "--no-progress"],
             out / "build.log",
         )  # fmt: skip
+    base = [str(data)]
+    if args.dart_frames:
+        dart = out / "dart"
+        if not (dart / "done").exists():
+            wall["dart"] = run(
+                [BIN / "drive", "collect", "--policy", "expert-plan", "--beta", 0, "--noise",
+                 args.noise, "--towns", 8, "--frames", args.dart_frames, "--seed",
+                 args.build_seed * 1000 + 7, "--out", dart, "--workers", args.workers,
+                 "--no-progress"],
+                out / "dart.log",
+            )  # fmt: skip
+            (dart / "done").write_text("")
+        base.append(str(dart))
     models: dict[int, Path] = {}
     for seed in seeds:
         fit_dir = out / f"fit-s{seed}"
         common = ["--config", "tiny", "--val-towns", args.val_towns, "--seed", seed]
         if not (fit_dir / "done").exists():
             wall[f"fit-s{seed}"] = run(
-                [BIN / "train", "fit", "--shards", data, "--epochs", args.epochs, "--out",
-                 fit_dir, *common],
+                [BIN / "train", "fit", "--shards", ",".join(base), "--epochs", args.epochs,
+                 "--out", fit_dir, *common],
                 out / f"fit-s{seed}.log",
             )  # fmt: skip
             (fit_dir / "done").write_text("")
-        ckpt, shards = fit_dir / "last.pt", [str(data)]
+        ckpt, shards = fit_dir / "last.pt", list(base)
         for r in range(1, args.dagger_rounds + 1):
             on_policy = out / f"dagger-s{seed}-r{r}"
             if not (on_policy / "done").exists():
                 wall[f"collect-s{seed}-r{r}"] = run(
                     [BIN / "drive", "collect", "--policy", f"ckpt:{ckpt}", "--beta", args.beta,
                      "--towns", 8, "--frames", args.dagger_frames, "--seed",
-                     args.build_seed * 1000 + seed * 10 + r, "--sensor",
-                     f"recovery_share={args.recovery}", "--out", on_policy, "--workers",
-                     args.workers, "--force", "--no-progress"],
+                     args.build_seed * 1000 + seed * 10 + r, "--out", on_policy, "--workers",
+                     args.workers, "--no-progress"],
                     out / f"collect-s{seed}-r{r}.log",
                 )  # fmt: skip
                 (on_policy / "done").write_text("")
