@@ -126,7 +126,7 @@ def main() -> None:
         if not (fit_dir / "done").exists():
             wall[f"fit-s{seed}"] = run(
                 [BIN / "train", "fit", "--shards", ",".join(base), "--epochs", args.epochs,
-                 "--out", fit_dir, *common],
+                 "--out", fit_dir, "--force", *common],
                 out / f"fit-s{seed}.log",
             )  # fmt: skip
             (fit_dir / "done").write_text("")
@@ -147,7 +147,7 @@ def main() -> None:
             if not (tuned / "done").exists():
                 wall[f"fit-s{seed}-r{r}"] = run(
                     [BIN / "train", "fit", "--shards", ",".join(shards), "--init", ckpt,
-                     "--epochs", args.dagger_epochs, "--out", tuned, *common],
+                     "--epochs", args.dagger_epochs, "--out", tuned, "--force", *common],
                     out / f"fit-s{seed}-r{r}.log",
                 )  # fmt: skip
                 (tuned / "done").write_text("")

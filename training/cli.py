@@ -209,7 +209,8 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         "--init",
         metavar="CKPT",
         help="start from this checkpoint's weights (fine-tuning; the optimizer and schedule "
-        "start afresh; --config and the model flags must describe its model)",
+        "start afresh; --config and the model flags must describe its model; default: none, "
+        "random weights)",
     )
     p.add_argument(
         "--resume",
