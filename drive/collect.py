@@ -270,7 +270,12 @@ def add_arguments(p) -> None:
         help="DART-style perturbations of the driver: probability per 2 Hz plan that a drift "
         "beside the lane or a hesitation (standing) starts (default: %(default)s, none)",
     )
-    p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
+    p.add_argument(
+        "--device",
+        default="auto",
+        choices=("auto", "cpu", "cuda"),
+        help="where a ckpt: policy runs (default: auto, CUDA if present)",
+    )
     build.add_arguments(p)
 
 

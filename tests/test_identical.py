@@ -30,9 +30,9 @@ EPISODES = (
     ("grid3-3-0", 3, "sunny", "normal", 5),
     ("grid3-8-1", 8, "rainy", "aggressive", 3),
 )
-EXPECTED_SHA256 = {  # scene v2, data v10, schema 1.2
-    "grid3-3-0": "1cb98082f49ab67ded1ee3bac5a436869136d677597ae12850c3d8f5317c3cfb",
-    "grid3-8-1": "37eada64ae72674eb18544cb1cfcbb4424faad5fb1e7de0f6198096b4cd2b76f",
+EXPECTED_SHA256 = {  # scene v2, data v10, schema 1.2 (config_json: recovery_*, driver)
+    "grid3-3-0": "a01f75be744b2ff1a0e4bdae94627b7ca935d72cb21582dbf18dfb0c8764453b",
+    "grid3-8-1": "ec6a9c608b172db2eb398c7b8a6ce49ee393310b8ad9a7ff92c997e67f6f2f5a",
 }
 
 
