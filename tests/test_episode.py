@@ -80,14 +80,12 @@ def test_same_seed_same_table(run):
     assert result.table.equals(again.table)
 
 
-def test_recovery_frames_are_labelled_in_their_rigs_frame(tmp_path, monkeypatch):
+def test_recovery_frames_are_labelled_in_their_rigs_frame(tmp_path, monkeypatch, grid3):
     """With every frame a recovery frame, the world is the same (the rigs only move the
     sensors), and each label, moved from the rig's frame back into the ego's, is the one the
     frame has without recovery."""
     monkeypatch.setenv("IIDSU_CACHE", str(tmp_path))
-    spec = episode.EpisodeSpec(
-        "grid3-7-0", "grid3", str(shared_grid3()[0]), 7, "sunny", "normal", 4
-    )
+    spec = episode.EpisodeSpec("grid3-7-0", "grid3", str(grid3[0]), 7, "sunny", "normal", 4)
     plain = episode.run_episode(spec).table.to_pandas()
     table = episode.run_episode(spec, episode.SensorConfig(recovery_share=1.0)).table
     shifted = table.to_pandas()

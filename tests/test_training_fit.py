@@ -10,6 +10,7 @@ import cv2
 import pytest
 import torch
 
+from tests.synthetic import write_shards
 from training import curves, data, fit
 from training.config import PRESETS
 from training.errors import UserError
