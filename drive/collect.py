@@ -277,6 +277,9 @@ def add_arguments(p) -> None:
         help="where a ckpt: policy runs (default: auto, CUDA if present)",
     )
     build.add_arguments(p)
+    # not a build's: a few thousand frames beside one (give it a seed other than the build's:
+    # episode ids are <town>-<seed>-<n>, and train fit refuses the same episode twice)
+    p.set_defaults(frames=4000, out=Path("data/on-policy"))
 
 
 def run(args) -> int:
