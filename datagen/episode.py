@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -164,6 +164,20 @@ def episode_rng(seed: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([seed, 0x5E5]))
 
 
+def recovery_rng(seed: int) -> np.random.Generator:
+    """The stream that draws an episode's recovery frames and their rigs (SensorConfig)."""
+    return np.random.default_rng(np.random.SeedSequence([seed, 0x12EC]))
+
+
+def _rig(config: SensorConfig, rng: np.random.Generator) -> tuple[float, float]:
+    """(shift_m, yaw_rad) of one frame's sensor rig: (0, 0), or a recovery frame's draw."""
+    if config.recovery_share <= 0.0 or rng.random() >= config.recovery_share:
+        return (0.0, 0.0)
+    shift = float(rng.uniform(-config.recovery_shift_m, config.recovery_shift_m))
+    yaw = float(np.radians(rng.uniform(-config.recovery_yaw_deg, config.recovery_yaw_deg)))
+    return (shift, yaw)
+
+
 def run_episode(
     spec: EpisodeSpec,
     sensors: SensorConfig = SensorConfig(),
@@ -176,6 +190,7 @@ def run_episode(
     net = Path(spec.net_path)
     static = load_static_scene(net)
     sense = Sensors(static, sensors, spec.weather, episode_rng(spec.seed))
+    rigs = recovery_rng(spec.seed)
     config = WorldConfig(
         net_path=net,
         seed=spec.seed,
@@ -197,7 +212,7 @@ def run_episode(
             k = len(states) - 1 - FUTURE  # this frame's future is now complete
             if k < 0:
                 continue
-            row = _process(k, states, sweeps, sense, spec, timer)
+            row = _process(k, states, sweeps, sense, spec, timer, rigs)
             if row is not None:
                 rows.append(row)
                 if progress is not None and len(rows) - reported >= 5:
@@ -231,8 +246,12 @@ def _process(
     sense: Sensors,
     spec: EpisodeSpec,
     timer: _Timer,
+    rigs: np.random.Generator,
 ) -> dict | None:
-    """Sweep frame k (kept for the next two frames) and, past the history, make its row."""
+    """Sweep frame k (kept for the next two frames) and, past the history, make its row. A
+    recovery frame (`_rig`) is sensed again from its rig for the row (its camera and the LiDAR
+    sweep at t; the past sweeps, aligned into the rig's frame, stay the ego's own), while the
+    ego's own sweep is what later frames keep as their history."""
     frame = states[k]
     scene = sense.scene(frame)
     timer.lap("scene")
@@ -241,24 +260,51 @@ def _process(
     if k < HISTORY:
         timer.lap("lidar")
         return None
-    counts = sense.lidar_counts([sweeps[k - j] for j in range(HISTORY + 1)])
-    bev, ground_t = lidar.lidar_bev_channels(counts), lidar.ground_channel(counts)
-    timer.lap("lidar")
-    image = sense.image(scene, frame)
-    timer.lap("camera")
+    rig = _rig(sense.config, rigs)
+    seen, now = frame, sweeps[k]
+    if rig != (0.0, 0.0):
+        pose = labels.rig_pose(frame.ego.pose, *rig)
+        seen = replace(frame, ego=replace(frame.ego, pose=pose))
+        now = sense.sweep(scene, seen)
+    encoded = encode_sensors(
+        sense, scene, seen, [now, *(sweeps[k - j] for j in range(1, HISTORY + 1))], timer
+    )
     future = states[k + 1 : k + 1 + FUTURE]
-    row = labels.frame_labels(frame, future, sweeps[k].actor_hits)
-    semantic = labels.bev_semantic(sense.static.label_map, frame.ego.pose)
+    row = labels.frame_labels(frame, future, now.actor_hits, rig)
+    semantic = labels.bev_semantic(sense.static.label_map, seen.ego.pose)
     timer.lap("labels")
     row.update(
         episode_id=spec.episode_id,
         town=spec.town,
         weather=spec.weather,
         behaviour=spec.behaviour,
-        image=codecs.encode_image(image, sense.config.jpeg_quality),
-        lidar_bev=codecs.encode_lidar_bev(bev),
-        lidar_ground_t=codecs.encode_lidar_ground(ground_t),
+        **encoded,
         bev_semantic=codecs.encode_bev_semantic(semantic),
     )
     timer.lap("encode")
     return row
+
+
+def encode_sensors(
+    sense: Sensors,
+    scene,
+    frame: FrameState,
+    sweeps: list[lidar.Sweep],
+    timer: _Timer | None = None,
+) -> dict[str, bytes]:
+    """The sensor columns of one frame as the shards hold them (image, lidar_bev,
+    lidar_ground_t): the camera seen from `frame`'s ego pose in `scene`, and the LiDAR BEV of
+    `sweeps` (at t, t-1, t-2, newest first: HISTORY + 1) in that pose's frame. The one encoder
+    of a frame: the build and closed-loop driving (drive/sim.py) both call it."""
+    counts = sense.lidar_counts(sweeps)
+    bev, ground_t = lidar.lidar_bev_channels(counts), lidar.ground_channel(counts)
+    if timer is not None:
+        timer.lap("lidar")
+    image = sense.image(scene, frame)
+    if timer is not None:
+        timer.lap("camera")
+    return {
+        "image": codecs.encode_image(image, sense.config.jpeg_quality),
+        "lidar_bev": codecs.encode_lidar_bev(bev),
+        "lidar_ground_t": codecs.encode_lidar_ground(ground_t),
+    }

@@ -9,6 +9,9 @@ label map (datagen/sensors/labelmap.py); every position is in the ego frame at t
   call for all of them would use the even-odd rule and punch holes where lanes overlap.
 - `boxes`: agents inside the BEV area at t, t+0.5 s and t+1.0 s, each in the ego frame at t,
   with their LiDAR returns at t.
+- recovery frames (datagen/episode.py) are sensed from a rig shifted beside the ego and turned
+  (`rig_pose`): their labels are in that rig's frame, so the waypoints lead back to where the
+  expert drove (TransFuser++'s shifted-camera augmentation, Jaeger et al. 2023).
 - `waypoints`: the ego's own box centre at t+0.5..2.0 s; `target_point` and the rest as the
   simulator reports them.
 """
@@ -17,6 +20,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -137,26 +141,51 @@ def waypoints(frame: FrameState, future: Sequence[FrameState]) -> list[float]:
     return frame.ego.pose.ego_from_world(xy).ravel().tolist()
 
 
+def rig_pose(ego: Pose, shift_m: float, yaw_rad: float) -> Pose:
+    """The sensor rig's pose when it is shifted `shift_m` to the ego's left (m, negative: right)
+    and turned `yaw_rad` (counter-clockwise) from the ego's box centre and heading."""
+    x, y = ego.world_from_ego(np.array([[0.0, shift_m]]))[0]
+    return Pose(float(x), float(y), ego.yaw_rad + yaw_rad)
+
+
 def frame_labels(
-    frame: FrameState, future: Sequence[FrameState], lidar_hits: dict[str, int] | None = None
+    frame: FrameState,
+    future: Sequence[FrameState],
+    lidar_hits: dict[str, int] | None = None,
+    rig: tuple[float, float] = (0.0, 0.0),
+    waypoints_ego: Sequence[float] | None = None,
 ) -> dict:
     """Every non-sensor column of one row (schemas.FIELDS) except the episode's identity
-    (episode_id, frame, town, weather, behaviour) and the binary sensor columns."""
+    (episode_id, frame, town, weather, behaviour) and the binary sensor columns.
+
+    `rig`: (shift_m, yaw_rad) of the sensor rig from the ego (`rig_pose`; recovery frames,
+    datagen/episode.py): every column in the ego frame is then in the rig's frame, as if the
+    ego stood there, while ego_x/ego_y/ego_yaw stay the ego's own pose. `waypoints_ego` (8
+    floats, the ego frame at t) replaces the recorded future's waypoints: on-policy frames are
+    labelled with the expert's plan from where the policy put the ego (drive/collect.py), and
+    then `future` need only hold the boxes' two future states."""
     pose = frame.ego.pose
-    tp = pose.ego_from_world(np.array([frame.target_point_xy_m]))[0]
+    seen = frame
+    if rig != (0.0, 0.0):
+        seen = replace(frame, ego=replace(frame.ego, pose=rig_pose(pose, *rig)))
+    tp = seen.ego.pose.ego_from_world(np.array([frame.target_point_xy_m]))[0]
     return {
         "time_s": float(frame.time_s),
         "ego_x": float(pose.x_m),
         "ego_y": float(pose.y_m),
         "ego_yaw": float(math.remainder(pose.yaw_rad, 2 * math.pi)),
         "ego_speed": float(frame.ego.speed_mps),
+        "rig_shift_m": float(rig[0]),
+        "rig_yaw_rad": float(rig[1]),
         "command": frame.command,
         "target_point": [float(tp[0]), float(tp[1])],
-        "waypoints": waypoints(frame, future),
+        "waypoints": (
+            waypoints(seen, future) if waypoints_ego is None else [float(v) for v in waypoints_ego]
+        ),
         "traffic_light": frame.traffic_light,
         "light_distance_m": frame.light_distance_m,
         "stop_sign": bool(frame.stop_sign),
         "stop_distance_m": frame.stop_distance_m,
         "expert_reason": frame.expert_reason,
-        "boxes": boxes(frame, future, lidar_hits),
+        "boxes": boxes(seen, future, lidar_hits),
     }

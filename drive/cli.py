@@ -4,6 +4,7 @@
     drive eval --policy ckpt:runs/demo/last.pt --routes drive/routes/heldout_short.json \\
         --workers 2 --out runs/eval_heldout
     drive swap --policy ckpt:runs/demo/last.pt --town downtown --out runs/swap   # Fig. 6
+    drive collect --policy ckpt:runs/demo/last.pt --towns 8 --frames 4000 --out runs/dagger1
 """
 
 from __future__ import annotations
@@ -21,7 +22,12 @@ from schemas import cli  # noqa: E402
 
 
 def _add_eval(e: argparse.ArgumentParser) -> None:
-    e.add_argument("--policy", required=True, help="expert | constant | ckpt:PATH")
+    e.add_argument(
+        "--policy",
+        required=True,
+        help="expert | expert-plan (the expert's waypoints through the model's controller) | "
+        "constant | ckpt:PATH",
+    )
     e.add_argument("--routes", required=True, type=Path, help="route file (drive routes)")
     e.add_argument("--out", required=True, type=Path, help="results directory")
     e.add_argument("--workers", type=int, default=1, help="routes driven in parallel")
@@ -66,6 +72,14 @@ def _add_eval(e: argparse.ArgumentParser) -> None:
         help="no creep: a policy that stands 55 s is not pushed forward (TransFuser's rule)",
     )
     e.add_argument(
+        "--lateral",
+        choices=("pursuit", "pid"),
+        default="pursuit",
+        help="how the controller steers a non-privileged policy along its waypoints: pure "
+        "pursuit on the planned trajectory, or TransFuser's PID on the first two waypoints "
+        "(default: %(default)s; drive/controller.py)",
+    )
+    e.add_argument(
         "--baseline", type=Path, default=None, help="an expert run's --out: traffic delay vs it"
     )
 
@@ -94,6 +108,18 @@ def _add_routes(p: argparse.ArgumentParser) -> None:
     routes.add_arguments(p)
 
 
+def _add_collect(p: argparse.ArgumentParser) -> None:
+    from drive import collect
+
+    collect.add_arguments(p)
+
+
+def _collect(args) -> int:
+    from drive import collect
+
+    return collect.run(args)
+
+
 def _add_swap(p: argparse.ArgumentParser) -> None:
     from drive import swap
 
@@ -105,6 +131,12 @@ COMMANDS = (
     cli.Command("eval", "drive a route set with a policy and score it", _add_eval, _eval),
     cli.Command(
         "swap", "one scene in two weathers: what the model plans (Fig. 6)", _add_swap, _swap
+    ),
+    cli.Command(
+        "collect",
+        "on-policy data: a policy drives, the expert labels every frame (DAgger, DART)",
+        _add_collect,
+        _collect,
     ),
 )
 

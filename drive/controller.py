@@ -13,6 +13,15 @@ from the plan (0 s: the ego's pose when planned; +0.5 .. +2.0 s: the waypoints),
 `elapsed + 0.5 s` and `elapsed + 1.0 s` in the current ego frame -- exactly TransFuser's two
 waypoints when `elapsed` is 0.
 
+TransFuser's lateral PID was tuned for CARLA's cars, whose steering reaches about twice the
+wheel angle of the bicycle here, and its aim point (0.5-1.0 s ahead) is a few metres away at
+turning speeds, so at a tight turn it steers far too little (`expert-plan`, the expert's own
+plan driven through it, left its route on dev routes). `ControllerConfig.lateral="pursuit"`
+(the default) steers by pure pursuit instead (Coulter, CMU-RI-TR-92-01, 1992), which is exact
+for this kinematic bicycle: the aim point is where the planned trajectory crosses the circle of
+radius L_d (speed-dependent) around the rear axle, at angle alpha, and the wheel angle is
+delta = atan(2 L sin(alpha) / L_d). docs/closed-loop.md has the measured comparison.
+
 The vehicle is a kinematic bicycle about the box centre (Rajamani, "Vehicle Dynamics and
 Control", Sec. 2.2): slip angle beta = atan(l_r / L tan delta), x' = v cos(yaw + beta),
 y' = v sin(yaw + beta), yaw' = v / l_r sin beta, v' = a. Steering is positive to the left
@@ -37,6 +46,8 @@ import numpy as np
 from datagen.state import Pose
 from schemas import WAYPOINT_TIMES_S
 
+LATERAL = ("pursuit", "pid")
+
 
 @dataclass(frozen=True)
 class ControllerConfig:
@@ -49,6 +60,10 @@ class ControllerConfig:
         brake_ratio: ... or when speed / planned speed exceeds this.
         clip_delta_mps: the speed error the longitudinal PID sees is clipped to [0, this].
         max_throttle: throttle limit, 0..1.
+        lateral: "pursuit" (ours, the default: pure pursuit on the planned trajectory) or
+            "pid" (TransFuser's PID on the heading to the first two waypoints' mean).
+        lookahead_s, min_lookahead_m, max_lookahead_m: pure pursuit's L_d, from the rear
+            axle: speed x lookahead_s, clipped to [min, max] m.
     """
 
     turn_kp: float = 1.25
@@ -63,6 +78,14 @@ class ControllerConfig:
     brake_ratio: float = 1.1
     clip_delta_mps: float = 0.25
     max_throttle: float = 0.75
+    lateral: str = "pursuit"
+    lookahead_s: float = 0.6
+    min_lookahead_m: float = 3.0
+    max_lookahead_m: float = 12.0
+
+    def __post_init__(self) -> None:
+        if self.lateral not in LATERAL:
+            raise ValueError(f"lateral must be one of {LATERAL}, got {self.lateral!r}")
 
 
 @dataclass(frozen=True)
@@ -128,9 +151,15 @@ class Controller:
         self.speed = PID(c.speed_kp, c.speed_ki, c.speed_kd, c.speed_n)
 
     def control(
-        self, waypoints_ego: np.ndarray, speed_mps: float, creep_throttle: float = 0.0
+        self,
+        waypoints_ego: np.ndarray,
+        speed_mps: float,
+        creep_throttle: float = 0.0,
+        path_ego: np.ndarray | None = None,
     ) -> Control:
         """waypoints_ego: (>=2, 2) float, m, ego frame, 0.5 s apart -> this step's Control.
+        `path_ego`: (K, 2) the planned trajectory ahead, ego frame (Plan.ahead), which pure
+        pursuit steers along (without it, or with lateral "pid", the PID steers).
         `creep_throttle` > 0 (Creep): no brake and at least that throttle."""
         c = self.config
         w = np.asarray(waypoints_ego, dtype=np.float64)
@@ -141,11 +170,51 @@ class Controller:
         if speed_mps < 0.01:  # TransFuser: no steering at standstill
             angle = 0.0
         steer = float(np.clip(self.turn.step(angle), -1.0, 1.0))
+        if c.lateral == "pursuit" and path_ego is not None:
+            steer = 0.0 if speed_mps < 0.01 else pursuit_steer(path_ego, speed_mps, c)
         delta = float(np.clip(desired - speed_mps, 0.0, c.clip_delta_mps))
         throttle = float(np.clip(self.speed.step(delta), 0.0, c.max_throttle))
         if creep_throttle > 0.0:
             return Control(steer=steer, throttle=max(throttle, creep_throttle), brake=False)
         return Control(steer=steer, throttle=0.0 if brake else throttle, brake=bool(brake))
+
+
+def pursuit_steer(
+    path_ego: np.ndarray,
+    speed_mps: float,
+    config: ControllerConfig,
+    vehicle: VehicleConfig = VehicleConfig(),
+) -> float:
+    """Pure pursuit's steer in [-1, 1] along `path_ego` ((K, 2), m, ego frame of the box
+    centre): the aim point is the last crossing of the path with the circle of radius L_d
+    around the rear axle (the path's end, straight on along its last segment, if it ends
+    inside the circle), and the wheel angle delta = atan(2 L sin(alpha) / L_d)."""
+    rear = np.array([-vehicle.rear_to_centre_m, 0.0])
+    look = float(
+        np.clip(speed_mps * config.lookahead_s, config.min_lookahead_m, config.max_lookahead_m)
+    )
+    p = np.asarray(path_ego, dtype=np.float64).reshape(-1, 2) - rear
+    p = p[np.concatenate([[True], np.hypot(*np.diff(p, axis=0).T) > 1e-3])]
+    r = np.hypot(p[:, 0], p[:, 1])
+    aim = None
+    for k in range(len(p) - 1, 0, -1):  # the last segment that leaves the circle
+        if r[k] >= look > r[k - 1] or (r[k] >= look and k == 1):
+            a, d = p[k - 1], p[k] - p[k - 1]
+            # |a + t d| = look, the larger root in [0, 1]
+            qa, qb, qc = d @ d, 2.0 * (a @ d), a @ a - look * look
+            t = (-qb + math.sqrt(max(qb * qb - 4.0 * qa * qc, 0.0))) / (2.0 * qa)
+            aim = a + min(max(t, 0.0), 1.0) * d
+            break
+    if aim is None:  # the whole path is inside the circle (slow): aim along its end
+        if len(p) >= 2:
+            d = p[-1] - p[-2]
+            aim = p[-1] + d / max(float(np.hypot(*d)), 1e-9) * max(look - r[-1], 0.0)
+        else:
+            return 0.0
+    alpha = math.atan2(aim[1], aim[0])
+    dist = max(float(np.hypot(*aim)), 1e-6)
+    delta = math.atan(2.0 * vehicle.wheelbase_m * math.sin(alpha) / dist)
+    return float(np.clip(delta / vehicle.max_steer_rad, -1.0, 1.0))
 
 
 @dataclass(frozen=True)
@@ -273,6 +342,17 @@ class Plan:
         """waypoints_ego: (n, 2) m, ego frame at `pose` (the model's output)."""
         world = pose.world_from_ego(np.asarray(waypoints_ego, dtype=np.float64))
         return Plan(time_s, np.vstack([[pose.x_m, pose.y_m], world]))
+
+    def ahead(self, time_s: float, pose: Pose) -> np.ndarray:
+        """(K, 2) the trajectory from its point at `time_s` to its last waypoint, in the
+        frame of `pose` (what pure pursuit steers along)."""
+        times = np.concatenate([[0.0], WAYPOINT_TIMES_S[: len(self.points_xy_m) - 1]])
+        pts = self.points_xy_m
+        elapsed = min(max(time_s - self.time_s, 0.0), float(times[-1]))
+        k = int(np.clip(np.searchsorted(times, elapsed, side="right") - 1, 0, len(times) - 2))
+        f = (elapsed - times[k]) / (times[k + 1] - times[k])
+        now = pts[k] + f * (pts[k + 1] - pts[k])
+        return pose.ego_from_world(np.vstack([now, pts[k + 1 :]]))
 
     def at(self, time_s: float, pose: Pose) -> np.ndarray:
         """(2, 2) the trajectory at +0.5 s and +1.0 s from `time_s`, in the frame of `pose`

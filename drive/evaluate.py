@@ -47,6 +47,7 @@ from datagen.world import TELEPORT_S
 from drive import score
 from drive.controller import (
     Controller,
+    ControllerConfig,
     Creep,
     CreepConfig,
     Plan,
@@ -60,6 +61,7 @@ from schemas import FRAME_PERIOD_S, outputs
 
 CREEP_STUCK_S = CreepConfig().stuck_s
 PLAN_PERIOD_S = FRAME_PERIOD_S  # the policy plans at the data's rate (2 Hz)
+STUCK_MPS = 0.1  # slower than this, a policy stands (counted at every plan, 2 Hz)
 STEP_S = 0.1  # SUMO step: the controller and the infraction tracker run every step
 # The expert's world gives up on an ego that stands 80 s or that SUMO teleports out of a jam:
 # for the score that is the agent blocked.
@@ -80,6 +82,7 @@ class Task:
     max_sim_s: float | None = None  # stop after this much simulated time (smoke runs)
     creep: bool = True  # a policy that stands still creeps (drive.controller.Creep)
     repetition: int = 0  # which repetition of the route (repetition_seed)
+    lateral: str = "pursuit"  # the controller's steering (drive.controller.ControllerConfig)
     run: dict = field(default_factory=dict)  # what a result must match to be resumed (run_key)
 
 
@@ -174,12 +177,13 @@ def drive_route(
         frame = world.state()
         timing["setup"] = time.perf_counter() - t0  # the world's start-up (warm-up) included
         vehicle = VehicleState(frame.ego.pose, frame.ego.speed_mps)
-        controller = Controller()
+        controller = Controller(ControllerConfig(lateral=task.lateral))
         plan: Plan | None = None
         waypoints = None
         steps_per_plan = round(PLAN_PERIOD_S / STEP_S)
         max_sim_s = task.max_sim_s
         k = 0
+        standing_s = stuck_s = 0.0  # standing, and standing where the expert would drive on
         while True:
             t = time.perf_counter()
             tracker.step(frame, STEP_S)
@@ -191,6 +195,9 @@ def drive_route(
             if k % steps_per_plan == 0:
                 if progress is not None:
                     progress(0)
+                if external and vehicle.speed_mps < STUCK_MPS:
+                    standing_s += PLAN_PERIOD_S
+                    stuck_s += PLAN_PERIOD_S if world.expert_would_go() else 0.0
                 t = time.perf_counter()
                 image_jpeg = lidar_png = ground_png = None
                 if encode:
@@ -213,6 +220,8 @@ def drive_route(
                     waypoints = model.plan(frame, image_jpeg, lidar_png, ground_png)
                 elif spec.kind == "constant":
                     waypoints = constant_waypoints()
+                elif spec.kind == "expert-plan":  # None off the network: the last plan holds
+                    waypoints = world.expert_waypoints(frame)
                 if waypoints is not None:
                     plan = Plan.from_ego(frame.time_s, frame.ego.pose, waypoints)
                 timing["policy"] += time.perf_counter() - t
@@ -222,7 +231,8 @@ def drive_route(
             if plan is not None:
                 push = creep.step(vehicle.speed_mps, clear_ahead) if creep is not None else 0.0
                 aim = plan.at(frame.time_s, vehicle.pose)
-                ctrl = controller.control(aim, vehicle.speed_mps, creep_throttle=push)
+                ahead = plan.ahead(frame.time_s, vehicle.pose)
+                ctrl = controller.control(aim, vehicle.speed_mps, push, ahead)
                 vehicle = bicycle_step(vehicle, ctrl, STEP_S)
                 world.place_ego(vehicle.pose, vehicle.speed_mps)
             world.step()
@@ -270,6 +280,8 @@ def drive_route(
         "sim_s": round(sim_s, 2),
         "ended": tracker.ended or (f"world_{world_end}" if world_end else "max_sim_s"),
         "creeps": creep.creeps if creep is not None else 0,
+        "standing_s": round(standing_s, 1),
+        "stuck_s": round(stuck_s, 1),
         "end_detail": world_detail if tracker.ended is None else "",
         "timing": {k: round(v, 4) for k, v in timing.items()},
     }
@@ -437,6 +449,9 @@ def summary_doc(name: str, docs: list[dict], baseline: dict[str, dict] | None = 
         "traffic_delay_rate_mean": float(np.mean([_delay_rate(d) for d in ran])),
         "sim_s": float(sum(d["sim_s"] for d in docs)),
         "creeps": int(sum(d.get("creeps", 0) for d in docs)),
+        # inertia: seconds standing where the privileged expert would drive on, per route
+        "stuck_s_mean": float(np.mean([d.get("stuck_s", 0.0) for d in docs])),
+        "standing_s_mean": float(np.mean([d.get("standing_s", 0.0) for d in docs])),
         "routes_with_creeps": int(sum(d.get("creeps", 0) > 0 for d in docs)),
         "wall_s": float(sum(d["timing"]["total"] for d in docs)),
     }
@@ -471,6 +486,11 @@ def format_summary(doc: dict) -> str:
     if doc.get("traffic_delay_rate_vs_baseline_mean") is not None:
         extra += f" ({doc['traffic_delay_rate_vs_baseline_mean']:+.2f} vs the baseline)"
     lines.append(extra)
+    if doc.get("stuck_s_mean"):
+        lines.append(
+            f"stood {doc['stuck_s_mean']:.1f} s per route where the expert would have driven on "
+            f"(of {doc['standing_s_mean']:.1f} s standing)"
+        )
     if doc.get("creeps"):
         lines.append(
             f"{doc['creeps']} creep(s) in {doc['routes_with_creeps']} route(s): stood "
@@ -481,8 +501,9 @@ def format_summary(doc: dict) -> str:
 
 def run_key(spec: PolicySpec, args) -> dict:
     """What a result in OUT must have been driven with to be kept on a rerun: the policy (a
-    checkpoint by its bytes' sha256), creep and the smoke-run limit."""
+    checkpoint by its bytes' sha256), creep, the lateral controller and the smoke-run limit."""
     key = {"policy": spec.name, "creep": not args.no_creep, "max_sim_s": args.max_sim_s}
+    key["lateral"] = getattr(args, "lateral", "pursuit")
     if spec.kind == "ckpt":
         from datagen.world.towns import network_sha256  # the sha256 of any file's bytes
 
@@ -563,6 +584,7 @@ def run(args) -> int:
             creep=not args.no_creep,
             repetition=rep,
             run=key,
+            lateral=args.lateral,
         )
         for rep in range(args.repetitions)
         for i, r in enumerate(routes)

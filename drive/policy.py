@@ -1,5 +1,8 @@
 """Who drives the ego: `expert` (the privileged rule-based driver of the data, the ceiling),
-`constant` (straight ahead at a fixed speed, the floor) or `ckpt:PATH` (a trained II-DSU).
+`expert-plan` (the same expert's plan from the ego's state, as the 4 waypoints a model outputs,
+driven through the model's controllers: the ceiling of the waypoint representation and the
+controller), `constant` (straight ahead at a fixed speed, the floor) or `ckpt:PATH` (a trained
+II-DSU).
 
 A non-privileged policy returns 4 waypoints (ego frame, m, +0.5 .. +2.0 s) from one recorded
 instant; drive/controller.py turns them into the ego's motion. The checkpoint policy sees what
@@ -37,13 +40,15 @@ class PolicySpec:
 
     @property
     def privileged(self) -> bool:
+        """The expert drives the ego inside the world (no controller, no bicycle model)."""
         return self.kind == "expert"
 
 
 def parse_policy(text: str, device: str = "auto") -> PolicySpec:
-    """'expert' | 'constant' | 'ckpt:PATH' -> PolicySpec; UserError for anything else (the
-    checkpoint is checked to exist and load here, before any route starts)."""
-    if text in ("expert", "constant"):
+    """'expert' | 'expert-plan' | 'constant' | 'ckpt:PATH' -> PolicySpec; UserError for
+    anything else (the checkpoint is checked to exist and load here, before any route
+    starts)."""
+    if text in ("expert", "expert-plan", "constant"):
         return PolicySpec(text, device=device)
     if text.startswith("ckpt:"):
         path = text[len("ckpt:") :]
@@ -56,7 +61,7 @@ def parse_policy(text: str, device: str = "auto") -> PolicySpec:
             reason = str(e).removeprefix(f"{path}: ")  # its path is in the flag already
             raise UserError(f"--policy {text}: {reason}") from None
         return PolicySpec("ckpt", path, device)
-    raise UserError(f"--policy {text!r}: expected expert, constant or ckpt:PATH")
+    raise UserError(f"--policy {text!r}: expected expert, expert-plan, constant or ckpt:PATH")
 
 
 def constant_waypoints(speed_mps: float = CONSTANT_SPEED_MPS) -> np.ndarray:

@@ -13,8 +13,12 @@ from __future__ import annotations
 from collections import deque
 from pathlib import Path
 
+import numpy as np
+
 from datagen.state import FrameState, Pose
 from drive.routes import Route
+
+EXPERT_GO_MPS = 1.0  # the expert "would go" when its target speed is above this
 
 
 class DrivenWorld:
@@ -53,6 +57,18 @@ class DrivenWorld:
     def truth(self):
         """datagen.world.EgoTruth after the last step."""
         return self._world.truth()
+
+    def expert_would_go(self) -> bool:
+        """Whether the privileged expert, in the ego's place now, would drive on (its target
+        speed is above EXPERT_GO_MPS): a policy standing then is stuck, not waiting."""
+        plan = self._world.expert_plan()
+        return plan is not None and plan[1].target_speed_mps > EXPERT_GO_MPS
+
+    def expert_waypoints(self, frame: FrameState) -> np.ndarray | None:
+        """(4, 2) the privileged expert's plan from the ego's state now (World.expert_plan),
+        ego frame at `frame` (its state now), m; None off the network."""
+        plan = self._world.expert_plan()
+        return None if plan is None else frame.ego.pose.ego_from_world(plan[0])
 
     def place_ego(self, pose: Pose, speed_mps: float) -> None:
         """Where the ego is at the end of the next step (world frame, box centre)."""
@@ -101,17 +117,12 @@ class SensorStream:
     def encode(self, frame: FrameState) -> tuple[bytes, bytes, bytes]:
         """(camera JPEG, LiDAR BEV PNG, current ground-hits PNG) of `frame`; call once per
         instant, in order."""
-        from datagen.sensors import lidar
-        from schemas import codecs
+        from datagen.episode import encode_sensors
 
         sense = self.sensors
         scene = sense.scene(frame)
         self.last_sweep = sense.sweep(scene, frame)
         self._sweeps.appendleft(self.last_sweep)  # [t, t-1, t-2]
         hist = list(self._sweeps) + [self._sweeps[-1]] * (self._sweeps.maxlen - len(self._sweeps))
-        counts = sense.lidar_counts(hist)
-        return (
-            codecs.encode_image(sense.image(scene, frame), self.jpeg_quality),
-            codecs.encode_lidar_bev(lidar.lidar_bev_channels(counts)),
-            codecs.encode_lidar_ground(lidar.ground_channel(counts)),
-        )
+        e = encode_sensors(sense, scene, frame, hist)
+        return e["image"], e["lidar_bev"], e["lidar_ground_t"]

@@ -25,9 +25,10 @@ from schemas.bev import (  # noqa: F401  (re-exported: the grid is part of the c
     ego_to_bev_px,
 )
 
-SCHEMA_VERSION = "1.1"
+SCHEMA_VERSION = "1.2"
 """major.minor: readers refuse a different major version; a minor bump only adds columns
-(ADDED_IN), which a file of an older minor version may lack. 1.1 adds `lidar_ground_t`."""
+(ADDED_IN), which a file of an older minor version may lack. 1.1 adds `lidar_ground_t`; 1.2
+`rig_shift_m` and `rig_yaw_rad` (recovery frames)."""
 
 # Keys of the file-level (schema) metadata. Values are UTF-8 strings; *_json values are JSON.
 META_SCHEMA_VERSION = "iidsu.schema_version"
@@ -106,6 +107,22 @@ FIELDS: tuple[pa.Field, ...] = (
         "ego_yaw", pa.float32(), "ego heading, counter-clockwise from +x (east)", "rad", "world"
     ),
     _field("ego_speed", pa.float32(), "ego speed", "m/s"),
+    _field(
+        "rig_shift_m",
+        pa.float32(),
+        "recovery frames: the sensor rig's shift to the ego's left (negative: right); every "
+        "'ego at t' column is in the rig's frame; 0 for frames sensed from the ego; since 1.2",
+        "m",
+        "ego",
+    ),
+    _field(
+        "rig_yaw_rad",
+        pa.float32(),
+        "recovery frames: the rig's turn from the ego's heading, counter-clockwise; 0 for "
+        "frames sensed from the ego; since schema 1.2",
+        "rad",
+        "ego",
+    ),
     _field("command", pa.string(), f"high-level route command: {', '.join(COMMANDS)}"),
     _field("target_point", pa.list_(pa.float32(), 2), "next route goal point (x, y)", "m", EGO),
     _field(
@@ -178,7 +195,7 @@ FIELDS: tuple[pa.Field, ...] = (
 )
 
 COLUMNS: tuple[str, ...] = tuple(f.name for f in FIELDS)
-ADDED_IN: dict[str, str] = {"lidar_ground_t": "1.1"}
+ADDED_IN: dict[str, str] = {"lidar_ground_t": "1.1", "rig_shift_m": "1.2", "rig_yaw_rad": "1.2"}
 """Columns added by a minor version: files written before it (older minor) may lack them."""
 
 
@@ -207,6 +224,18 @@ def schema(metadata: dict[str, str] | None = None) -> pa.Schema:
 
 
 SCHEMA = schema()
+
+
+LABEL_ONLY_CONFIG_KEYS = ("recovery_share", "recovery_shift_m", "recovery_yaw_deg", "driver")
+"""Keys of iidsu.config_json that shape a build's labels but not what its sensors see: shards
+that differ only in them were sensed alike (training mixes them, drive accepts the model)."""
+
+
+def sensor_part(config: dict) -> dict:
+    """An iidsu.config_json dict without LABEL_ONLY_CONFIG_KEYS and without "raycaster" (how the
+    rays were cast, datagen/sensors/raycast.py: the same hits either way): what the sensors
+    see."""
+    return {k: v for k, v in config.items() if k not in LABEL_ONLY_CONFIG_KEYS and k != "raycaster"}
 
 
 def file_metadata(

@@ -63,6 +63,8 @@ def synthetic_table(
                 "ego_y": 50.0,
                 "ego_yaw": 0.0,
                 "ego_speed": 2.0,
+                "rig_shift_m": 0.0,
+                "rig_yaw_rad": 0.0,
                 "command": "follow",
                 "target_point": [20.0, 0.0],
                 "waypoints": [1.0, 0.0, 2.0, 0.0, 3.0, 0.0, 4.0, 0.0],

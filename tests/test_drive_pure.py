@@ -551,3 +551,37 @@ def test_a_front_stopping_on_the_line_has_not_crossed_it():
     assert _drive(InfractionTracker(geom, _layout()), frames).counts() == {}
     over = [_frame(k * 0.1, min(10.0 + k, on_line + 0.2), sig="r") for k in range(120)]
     assert _drive(InfractionTracker(geom, _layout()), over).counts() == {"red_light": 1}
+
+
+def test_pure_pursuit_steers_a_circle_at_its_curvature():
+    """On a circle of radius R through the rear axle, the wheel angle is atan(L / R)."""
+    from drive.controller import ControllerConfig, VehicleConfig, pursuit_steer
+
+    veh, radius = VehicleConfig(), 12.0
+    rear = np.array([-veh.rear_to_centre_m, 0.0])
+    a = np.linspace(0.0, 1.5, 400)  # a left turn starting at the rear axle, heading +x
+    path = rear + radius * np.stack([np.sin(a), 1.0 - np.cos(a)], axis=1)
+    steer = pursuit_steer(path, 5.0, ControllerConfig())
+    assert steer * veh.max_steer_rad == pytest.approx(math.atan(veh.wheelbase_m / radius), rel=1e-3)
+    assert pursuit_steer(path * [1.0, -1.0], 5.0, ControllerConfig()) == pytest.approx(-steer)
+
+
+def test_pure_pursuit_drives_back_onto_a_line_beside_it():
+    ctrl = Controller()  # pure pursuit: the default
+    s = VehicleState(Pose(0.0, 2.0, 0.0), 6.0)  # 2 m left of the line y = 0
+    for _ in range(150):
+        x0 = s.pose.x_m
+        world = np.array([[x0 + 3.0 * k, 0.0] for k in (0, 1, 2, 3, 4)])
+        ahead = s.pose.ego_from_world(world)
+        c = ctrl.control(ahead[1:3], s.speed_mps, path_ego=ahead)
+        s = bicycle_step(s, c, 0.1)
+    assert abs(s.pose.y_m) < 0.2 and abs(s.pose.yaw_rad) < 0.05
+
+
+def test_plan_ahead_starts_where_the_plan_is_now():
+    pose = Pose(0.0, 0.0, 0.0)
+    wps = np.array([[2.0, 0.0], [4.0, 0.0], [6.0, 1.0], [8.0, 2.0]])
+    plan = Plan.from_ego(0.0, pose, wps)
+    np.testing.assert_allclose(plan.ahead(0.0, pose), np.vstack([[0.0, 0.0], wps]))
+    later = plan.ahead(0.75, pose)  # between the first and second waypoint
+    np.testing.assert_allclose(later, np.vstack([[3.0, 0.0], wps[1:]]))

@@ -78,3 +78,28 @@ def test_waypoints_match_the_recorded_future(run):
 def test_same_seed_same_table(run):
     _, result, again, _ = run
     assert result.table.equals(again.table)
+
+
+def test_recovery_frames_are_labelled_in_their_rigs_frame(tmp_path, monkeypatch, grid3):
+    """With every frame a recovery frame, the world is the same (the rigs only move the
+    sensors), and each label, moved from the rig's frame back into the ego's, is the one the
+    frame has without recovery."""
+    monkeypatch.setenv("IIDSU_CACHE", str(tmp_path))
+    spec = episode.EpisodeSpec("grid3-7-0", "grid3", str(grid3[0]), 7, "sunny", "normal", 4)
+    plain = episode.run_episode(spec).table.to_pandas()
+    table = episode.run_episode(spec, episode.SensorConfig(recovery_share=1.0)).table
+    shifted = table.to_pandas()
+    config = json.loads(table.schema.metadata[schemas.META_CONFIG_JSON.encode()])
+    assert config["recovery_share"] == 1.0  # the shards say how they were made
+    assert (plain.rig_shift_m == 0).all() and (plain.rig_yaw_rad == 0).all()
+    assert (shifted.rig_shift_m != 0).all() and (shifted.rig_shift_m.abs() <= 1.0).all()
+    assert (shifted.rig_yaw_rad.abs() <= np.radians(5.0) + 1e-6).all()
+    np.testing.assert_array_equal(plain.ego_x, shifted.ego_x)
+    np.testing.assert_array_equal(plain.ego_speed, shifted.ego_speed)
+    for (_, a), (_, b) in zip(plain.iterrows(), shifted.iterrows()):
+        rig = Pose(0.0, float(b.rig_shift_m), float(b.rig_yaw_rad))  # the rig in the ego frame
+        wp = rig.world_from_ego(np.asarray(b.waypoints, np.float64).reshape(4, 2))
+        np.testing.assert_allclose(wp, np.asarray(a.waypoints).reshape(4, 2), atol=1e-3)
+        tp = rig.world_from_ego(np.asarray(b.target_point, np.float64))
+        np.testing.assert_allclose(tp[0], a.target_point, atol=1e-3)
+        assert a.image != b.image  # the camera looked from elsewhere

@@ -261,3 +261,49 @@ def test_emergency_brake_only_when_the_vtype_decel_cannot_stop_short_of_a_cut_in
     assert decide(ped, P, decel).brake_mps2 == P.emergency_decel_mps2
     # without a decel to compare with (the default), never
     assert decide(close, P).brake_mps2 == 0.0
+
+
+# ---------------------------------------------------------------- the expert's plan (rollout)
+
+TIMES = (0.5, 1.0, 1.5, 2.0)
+
+
+def test_rollout_from_standstill_on_a_free_road_accelerates_at_the_profiles_rate():
+    dists, first = expert.rollout(ExpertInput(0.0, LIMIT), P, TIMES)
+    assert first.reason == "none"
+    a = P.ego_accel_mps2
+    for t, d in zip(TIMES, dists):  # 0.5 a t^2 while below the cruise speed
+        assert d == pytest.approx(0.5 * a * t * t, rel=1e-6)
+
+
+def test_rollout_stops_before_a_red_light_and_never_passes_it():
+    inp = ExpertInput(6.0, LIMIT, light="red", light_distance_m=12.0)
+    dists, first = expert.rollout(inp, P, (*TIMES, 3.0, 4.0), P.ego_comfort_decel_mps2 * 1.2)
+    assert first.reason == "red_light"
+    assert all(b >= a for a, b in zip(dists, dists[1:]))  # never backwards
+    assert dists[-1] <= 12.0 - expert.STOP_LINE_MARGIN_M + 0.5
+
+
+def test_rollout_follows_a_slower_lead_that_keeps_its_speed():
+    lead = Obstacle(distance_m=30.0, speed_mps=5.0, kind="vehicle")
+    dists, first = expert.rollout(ExpertInput(12.0, LIMIT, obstacles=(lead,)), P, TIMES)
+    gaps = [30.0 + 5.0 * t - d for t, d in zip(TIMES, dists)]
+    assert min(gaps) > P.ego_min_gap_m  # it stays behind the lead
+
+
+def test_advance_moves_distances_and_drops_what_was_passed():
+    inp = ExpertInput(
+        8.0,
+        LIMIT,
+        limits_ahead=((3.0, 8.0),),
+        obstacles=(Obstacle(20.0, 4.0, "vehicle"),),
+        light="green",
+        light_distance_m=2.0,
+        route_end_m=50.0,
+        green_left_s=4.0,
+    )
+    out = expert.advance(inp, travelled_m=4.0, dt_s=0.5, speed_mps=8.0)
+    assert out.speed_limit_mps == 8.0 and out.limits_ahead == ()  # the lower limit applies now
+    assert out.obstacles[0].distance_m == pytest.approx(20.0 - 4.0 + 2.0)
+    assert out.light == "none" and out.light_distance_m is None  # passed
+    assert out.route_end_m == pytest.approx(46.0) and out.green_left_s == pytest.approx(3.5)

@@ -30,9 +30,9 @@ EPISODES = (
     ("grid3-3-0", 3, "sunny", "normal", 5),
     ("grid3-8-1", 8, "rainy", "aggressive", 3),
 )
-EXPECTED_SHA256 = {  # scene v2, data v10, schema 1.1
-    "grid3-3-0": "343e335d600ce60fc839c94e23465858c3e2f7af86f47e38596cefd71144ed78",
-    "grid3-8-1": "4e047532f6dc9d16f7ffb661d2d33384c8c509f6a01eee24359441c46dfacdd0",
+EXPECTED_SHA256 = {  # scene v2, data v10, schema 1.2 (config_json: recovery_*, driver)
+    "grid3-3-0": "a01f75be744b2ff1a0e4bdae94627b7ca935d72cb21582dbf18dfb0c8764453b",
+    "grid3-8-1": "ec6a9c608b172db2eb398c7b8a6ce49ee393310b8ad9a7ff92c997e67f6f2f5a",
 }
 
 

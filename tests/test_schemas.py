@@ -37,10 +37,21 @@ def test_a_1_0_shard_without_lidar_ground_t_still_validates():
     table = synthetic_table(2).drop_columns(["lidar_ground_t"])
     with pytest.raises(schemas.SchemaError, match="missing column 'lidar_ground_t'"):
         schemas.validate(table)  # a 1.1 file must have it
+    table = table.drop_columns(["rig_shift_m", "rig_yaw_rad"])  # added in 1.2
     meta = dict(table.schema.metadata)
     meta[schemas.META_SCHEMA_VERSION.encode()] = b"1.0"
     schemas.validate(table.replace_schema_metadata(meta))  # a 1.0 file predates it
-    assert schemas.ADDED_IN["lidar_ground_t"] == schemas.SCHEMA_VERSION == "1.1"
+    assert schemas.ADDED_IN["lidar_ground_t"] == "1.1"
+
+
+def test_a_1_1_shard_without_the_rig_columns_still_validates():
+    table = synthetic_table(2).drop_columns(["rig_shift_m", "rig_yaw_rad"])
+    with pytest.raises(schemas.SchemaError, match="missing column 'rig_shift_m'"):
+        schemas.validate(table)  # a 1.2 file must have them
+    meta = dict(table.schema.metadata)
+    meta[schemas.META_SCHEMA_VERSION.encode()] = b"1.1"
+    schemas.validate(table.replace_schema_metadata(meta))  # a 1.1 file predates them
+    assert schemas.ADDED_IN["rig_shift_m"] == schemas.SCHEMA_VERSION == "1.2"
 
 
 def test_rejects_wrong_type():

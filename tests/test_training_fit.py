@@ -10,6 +10,7 @@ import cv2
 import pytest
 import torch
 
+from tests.synthetic import write_shards
 from training import curves, data, fit
 from training.config import PRESETS, preset
 from training.errors import UserError
@@ -184,3 +185,25 @@ def test_curves_draw_a_png_without_tensorboard(shards, tmp_path):
     assert image is not None and image.shape[0] > 200 and image.std() > 0
     with pytest.raises(UserError, match="no steps.jsonl or metrics.jsonl"):
         curves.draw(tmp_path, tmp_path / "x.png")
+
+
+def test_several_datasets_read_as_one_and_a_repeated_episode_is_refused(shards, tmp_path):
+    other = write_shards(tmp_path / "other", towns=("gamma",), episodes=2, frames=4)
+    union = data.scan(f"{shards},{other}")
+    assert len(union) == len(data.scan(shards)) + len(data.scan(other))
+    assert set(union.town) == {"alpha", "beta", "gamma"}
+    with pytest.raises(UserError, match="in two shards"):
+        data.scan(f"{shards},{shards}")
+
+
+def test_init_starts_from_another_runs_weights(shards, tmp_path):
+    first = fit.fit(TINY_MODEL, _train_cfg(shards, tmp_path / "a", epochs=1), device="cpu")
+    cfg = _train_cfg(shards, tmp_path / "b", epochs=1, init=str(first), lr=0.0)
+    tuned = fit.fit(TINY_MODEL, cfg, device="cpu")
+    a, b = torch.load(first, weights_only=False), torch.load(tuned, weights_only=False)
+    for k, v in a["model"].items():  # lr 0: the weights it started from are the ones it saved
+        if v.is_floating_point() and "running_" not in k:  # (BatchNorm's statistics move on)
+            assert torch.equal(v, b["model"][k]), k
+    wider = dataclasses.replace(TINY_MODEL, output_px=TINY_MODEL.output_px * 2)
+    with pytest.raises(UserError, match="not this --config's"):
+        fit.fit(wider, _train_cfg(shards, tmp_path / "c", epochs=1, init=str(first)), device="cpu")

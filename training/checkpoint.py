@@ -16,6 +16,7 @@ from pathlib import Path
 
 import torch
 
+from schemas import sensor_part
 from training.config import ModelConfig
 from training.errors import UserError
 from training.model import IIDSU
@@ -55,11 +56,8 @@ def check_sensors(state: dict, sensors: dict | None, what: str, where: str | Pat
     trained = state.get("sensor_config")
     if trained is None or sensors is None:
         return
-    # "raycaster" (datagen/sensors/raycast.py): how the rays were cast, the same hits either way
-    a, b = (
-        json.loads(json.dumps({k: v for k, v in c.items() if k != "raycaster"}, sort_keys=True))
-        for c in (trained, sensors)
-    )
+    # what shapes only the labels (recovery frames, who drove) is no difference of the sensors
+    a, b = (json.loads(json.dumps(sensor_part(c), sort_keys=True)) for c in (trained, sensors))
     if a != b:
         keys = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
         raise UserError(

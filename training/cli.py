@@ -86,6 +86,7 @@ TRAIN_FLAGS = {
     "cache_dir": "cache_dir",
     "cache_gb": "cache_gb",
     "threads": "threads",
+    "init": "init",
 }
 MODEL_FLAGS = {
     "output_px": "output_px",
@@ -107,7 +108,11 @@ RESUMABLE = {"shards", "out", "epochs", "workers", "compile", "cache_dir", "cach
 
 
 def _add_fit(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--shards", metavar="DIR", help="shard directory or .parquet file")
+    p.add_argument(
+        "--shards",
+        metavar="DIR",
+        help="shard directory or .parquet file, or several comma-separated",
+    )
     p.add_argument(
         "--config",
         choices=sorted(PRESETS),
@@ -193,6 +198,13 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         help="intra-op CPU threads per process (0: the cores it may use / processes per machine)",
     )
     p.add_argument("--device", choices=DEVICES, default="auto", help=DEVICE_HELP)
+    p.add_argument(
+        "--init",
+        metavar="CKPT",
+        help="start from this checkpoint's weights (fine-tuning; the optimizer and schedule "
+        "start afresh; --config and the model flags must describe its model; default: none, "
+        "random weights)",
+    )
     p.add_argument(
         "--resume",
         action="store_true",

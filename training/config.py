@@ -201,6 +201,9 @@ class TrainConfig:
     # average is what validation scores and last.pt's "model" holds (training/fit.py). 0 = off.
     ema_decay: float = 0.0
     val_metrics: bool = True  # `train eval`'s metrics on the held-out frames every epoch
+    # A checkpoint whose weights start the run (fine-tuning, e.g. after `drive collect`); the
+    # optimizer and schedule start afresh. "": random initial weights.
+    init: str = ""
     # Loss weights: L = l_wp L_wp + l_O (alpha L_heat + beta L_reg) + l_M L_M
     #                   + l_tf (gamma L_light + delta L_sign) + l_wc L_wc   (Sec. III-C).
     # The weights are ours (the paper gives none): planning dominates, as Sec. III-C wishes;

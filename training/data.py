@@ -70,6 +70,8 @@ DRIVABLE, LANE = schemas.BEV_CLASSES.index("drivable"), schemas.BEV_CLASSES.inde
 
 def scan(path: str | Path) -> pd.DataFrame:
     """Frame index of a shard directory (or of one shard file), checking every file's schema.
+    `path` may name several, comma-separated ("data,runs/dagger1": a build and `drive
+    collect`'s on-policy frames read as one dataset; their episode ids must differ).
 
     Returns:
         one row per frame, in frame-number order: path (str), row_group (int), row (int, within
@@ -78,12 +80,16 @@ def scan(path: str | Path) -> pd.DataFrame:
         UserError: no such path, no shards in it, a file that is not Parquet, or a shard of
             another schema version or with missing or mistyped columns.
     """
-    try:
-        files = [str(f) for f in shard_files(path)]
-    except DatasetError as e:
-        raise UserError(str(e)) from None
-    if not files:
-        raise UserError(f"{path}: no shards (*.parquet files) in this directory")
+    several = "," in str(path) and not Path(path).exists()
+    files = []
+    for one in str(path).split(",") if several else [path]:
+        try:
+            found = [str(f) for f in shard_files(one)]
+        except DatasetError as e:
+            raise UserError(str(e)) from None
+        if not found:
+            raise UserError(f"{one}: no shards (*.parquet files) in this directory")
+        files += found
     parts = []
     for f in files:
         try:
@@ -103,6 +109,12 @@ def scan(path: str | Path) -> pd.DataFrame:
     index = pd.concat(parts, ignore_index=True)
     if index.empty:
         raise UserError(f"{path}: the shards hold no frames")
+    twice = index.duplicated(["episode_id", "frame"])
+    if twice.any():
+        raise UserError(
+            f"{path}: episode {index.episode_id[twice].iloc[0]} is in two shards (the same "
+            "dataset twice, or datasets built with the same seed?)"
+        )
     return index
 
 
@@ -206,10 +218,15 @@ def model_inputs(
 
 def sensor_config(index: pd.DataFrame) -> dict | None:
     """The sensor configuration the frames of `index` were recorded with (the shards'
-    iidsu.config_json), None if they carry none; UserError if the shards disagree."""
-    configs = {
+    iidsu.config_json without what shapes only the labels, schemas.sensor_part), None if they
+    carry none; UserError if the shards disagree."""
+    raw = {
         (pq.read_schema(f).metadata or {}).get(schemas.META_CONFIG_JSON.encode())
         for f in index.path.unique()
+    }
+    configs = {
+        None if c is None else json.dumps(schemas.sensor_part(json.loads(c)), sort_keys=True)
+        for c in raw
     }
     if len(configs) > 1:
         raise UserError("the shards were recorded with different sensor configurations")

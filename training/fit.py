@@ -259,6 +259,11 @@ def _fit(model_cfg: ModelConfig, cfg: TrainConfig, proc: Process, out: Path, sta
         rng = state["rng"]
         _set_rng_state(rng[proc.rank] if len(rng) == proc.world else rng[0], proc.device)
     else:
+        if cfg.init:  # fine-tuning: the weights of another run, a fresh optimizer
+            start = load_checkpoint(cfg.init)
+            if ModelConfig.from_dict(start["model_config"]) != model_cfg:
+                raise UserError(f"--init {cfg.init}: its model is not this --config's")
+            model.load_state_dict(start["model"])
         torch.manual_seed(cfg.seed + proc.rank)  # stochastic depth differs between ranks
     raw_model = model
     ema = None  # the averaged weights; the weights evaluated and saved as "model"

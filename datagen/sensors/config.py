@@ -30,6 +30,17 @@ class SensorConfig:
             route plan, the paper's route goal) or "dense" (30 m along the lane path); see
             datagen/world/world.py WorldConfig. Not a sensor, but it shapes the data, so it is
             recorded here (iidsu.config_json) and set with `--sensor target_point=dense`.
+        recovery_share: the share of frames sensed from a shifted and turned rig (recovery
+            frames, datagen/episode.py `_rig`; TransFuser++'s camera augmentation, Jaeger et
+            al. 2023, carla_garage config.py camera_translation_augmentation /
+            camera_rotation_augmentation), with every label in that rig's frame
+            (labels.frame_labels), so the model sees itself beside its lane and askew and learns
+            the way back; the rig's shift is uniform in +-recovery_shift_m to the side and its
+            turn in +-recovery_yaw_deg. Like target_point it shapes the labels, not what a
+            sensor sees in closed loop (schemas.LABEL_ONLY_CONFIG_KEYS).
+        driver: who drove the ego: "expert" (the recorded expert, waypoints from its future), or
+            what `drive collect` says of the policy that drove it (on-policy frames labelled
+            with the expert's plan); label-only too.
     """
 
     lidar: lidar.LidarConfig = field(default_factory=lidar.LidarConfig)
@@ -39,6 +50,10 @@ class SensorConfig:
     pose_noise_m: float = 0.0
     pose_noise_rad: float = 0.0
     target_point: str = "sparse"
+    recovery_share: float = 0.0
+    recovery_shift_m: float = 1.0
+    recovery_yaw_deg: float = 5.0
+    driver: str = "expert"
 
     def __post_init__(self):
         if self.raycaster not in RAYCASTERS:
@@ -47,6 +62,10 @@ class SensorConfig:
 
         if self.target_point not in TARGET_FORMS:
             raise ValueError(f"target_point must be one of {TARGET_FORMS}")
+        if not 0.0 <= self.recovery_share <= 1.0:
+            raise ValueError(f"recovery_share must be in [0, 1], got {self.recovery_share}")
+        if self.recovery_shift_m < 0.0 or self.recovery_yaw_deg < 0.0:
+            raise ValueError("recovery_shift_m and recovery_yaw_deg must be >= 0")
 
     def to_dict(self) -> dict:
         """Everything that shapes the data, for the shard metadata (iidsu.config_json): this

@@ -317,3 +317,89 @@ def decide(inp: ExpertInput, p: Profile, decel_mps2: float = math.inf) -> Decisi
     if target < 0.3 and reason in ("red_light", "stop_sign", "pedestrian", "route_end", "junction"):
         target = 0.0
     return Decision(max(0.0, target), reason, emergency_brake_mps2(inp, p, decel_mps2))
+
+
+# ---------------------------------------------------------------- the expert's plan from a state
+
+
+def advance(inp: ExpertInput, travelled_m: float, dt_s: float, speed_mps: float) -> ExpertInput:
+    """`inp` after the ego's front moved `travelled_m` along its path in `dt_s`, now at
+    `speed_mps`, in a constant-velocity world: every distance ahead shrinks by `travelled_m`,
+    an obstacle moves on along the path at its own speed, timers run down by `dt_s`, and signal
+    states stay as they are. What has been passed is dropped (a lower limit passed becomes the
+    lane's limit)."""
+
+    def ahead(d: float | None, behind_m: float = 0.0) -> float | None:
+        return None if d is None or d - travelled_m < -behind_m else d - travelled_m
+
+    limit = inp.speed_limit_mps
+    limits = []
+    for d, lim in inp.limits_ahead:
+        if d - travelled_m <= 0.0:
+            limit = lim
+        else:
+            limits.append((d - travelled_m, lim))
+    exit_m = ahead(inp.junction_exit_m)
+    entry_m = ahead(inp.junction_entry_m, math.inf) if exit_m is not None else None
+    timer = lambda t: None if t is None else t - dt_s  # noqa: E731
+    return ExpertInput(
+        speed_mps=speed_mps,
+        speed_limit_mps=limit,
+        limits_ahead=tuple(limits),
+        curvature_ahead=tuple(
+            (d - travelled_m, k) for d, k in inp.curvature_ahead if d - travelled_m >= -1.0
+        ),
+        obstacles=tuple(
+            Obstacle(
+                o.distance_m - travelled_m + max(0.0, o.speed_mps) * dt_s,
+                o.speed_mps,
+                o.kind,
+                o.track_id,
+            )
+            for o in inp.obstacles
+        ),
+        light=inp.light if ahead(inp.light_distance_m) is not None else "none",
+        light_distance_m=ahead(inp.light_distance_m),
+        stop_distance_m=ahead(inp.stop_distance_m, 1.0),
+        stop_done=inp.stop_done,
+        route_end_m=ahead(inp.route_end_m, math.inf),
+        junction_entry_m=entry_m if entry_m is None or entry_m > 0.0 else None,
+        junction_exit_m=exit_m if entry_m is not None and entry_m > 0.0 else None,
+        waits_inside=inp.waits_inside,
+        foe_eta_s=timer(inp.foe_eta_s),
+        green_left_s=timer(inp.green_left_s),
+        stop_foe_eta_s=timer(inp.stop_foe_eta_s),
+    )
+
+
+def rollout(
+    inp: ExpertInput,
+    p: Profile,
+    times_s: tuple[float, ...],
+    decel_mps2: float = math.inf,
+    dt_s: float = 0.1,
+) -> tuple[tuple[float, ...], Decision]:
+    """How far (m, along its path) the expert's front gets by each of `times_s` (s, ascending)
+    from the state `inp` describes, and its decision now.
+
+    The decision is re-taken every `dt_s` on `advance`d input, and the speed follows it as SUMO
+    moves the expert's car: towards the target at most at the profile's acceleration and at
+    `decel_mps2` (the vType's decel; an emergency brakes at `Decision.brake_mps2`). The rest of
+    the world keeps its velocity: the expert's plan under that assumption, which it revises
+    every step as the recorded expert does."""
+    first = decide(inp, p, decel_mps2)
+    out: list[float] = []
+    s, v, t, cur, dec = 0.0, inp.speed_mps, 0.0, inp, first
+    k = 0
+    while k < len(times_s):
+        down = dec.brake_mps2 if dec.brake_mps2 > 0.0 else decel_mps2
+        v1 = min(max(dec.target_speed_mps, v - down * dt_s), v + p.ego_accel_mps2 * dt_s)
+        v1 = max(v1, 0.0)
+        ds = 0.5 * (v + v1) * dt_s
+        s, v, t = s + ds, v1, t + dt_s
+        while k < len(times_s) and t >= times_s[k] - 1e-9:
+            out.append(s)
+            k += 1
+        cur = advance(cur, ds, dt_s, v)
+        dec = decide(cur, p, decel_mps2)
+    return tuple(out), first

@@ -499,6 +499,19 @@ class Sumo:
             speed = self._ls.vehicle.getSpeed(lid)
         return Leader(lid, float(gap), float(speed))
 
+    def ego_lane_offset(self) -> int:
+        """How many lanes the ego must move to the left (negative: right) to follow its route
+        (getBestLanes, what SUMO's strategic lane changing reads); 0 inside a junction or
+        where SUMO does not say."""
+        ls = self._ls
+        lane = ls.vehicle.getLaneID(EGO_ID)
+        if not lane or lane.startswith(":"):
+            return 0
+        for best in ls.vehicle.getBestLanes(EGO_ID):
+            if best[0] == lane:
+                return int(best[3])
+        return 0
+
     def ego_route(self) -> tuple[str, ...]:
         return tuple(self._ls.vehicle.getRoute(EGO_ID))
 

@@ -82,7 +82,7 @@ from datagen.world.fleet import EGO_DIMS_M, EGO_ID, dims
 from datagen.world.route import PATH_LOOKAHEAD_M, SIGNAL_RANGE_M
 from datagen.world.sumo import Collision, Snapshot, StepEvents, Sumo, box_centre
 from datagen.world.traffic import Traffic
-from schemas import FRAME_PERIOD_S, WEATHERS
+from schemas import FRAME_PERIOD_S, WAYPOINT_TIMES_S, WEATHERS
 
 AGENT_RADIUS_M = 100.0  # agents within this distance of the ego are in FrameState.agents
 BLOCKED_S = 80.0  # ego standing this long (not at a red light) ends the episode ("blocked")
@@ -96,6 +96,7 @@ STOP_FOE_CHECK_M = 10.0  # within this of a stop line the expert reads its junct
 # waypoints a frame is labelled with plus ~3 s of approach, so no frame shows driving into it.
 COLLISION_DROP_S = 5.0
 SLOW_LANE_CHANGE_MPS = 1.0  # slower than this the expert ego changes lanes only for its route
+LANE_CHANGE_S = 2.0  # the expert's plan changes lanes as SUMO does for it (sumo.py)
 
 _log = logging.getLogger(__name__)
 _open_world: World | None = None  # libsumo runs one simulation per process
@@ -270,6 +271,7 @@ class World:
         self._ego_collisions: tuple[tuple[str, str, str], ...] = ()
         self._entered_on_red = False
         self._on_plan = True  # SUMO's route of the ego is the planned one (from the offset)
+        self._last_lane = ""  # the last lane outside a junction the expert's plan saw
         try:
             _open_world = self
             self._sumo = Sumo(config.net_path, self.profile, config.step_s, config.seed)
@@ -482,22 +484,8 @@ class World:
         if self._route_end_m is not None and self._route_end_m < 5.0 and v1 < expert.STOPPED_MPS:
             self._end("route_end", "the ego stopped at the end of its route")
         self._note_red_light(lane0, lane1, first_state)
-        if lane1 != lane0 and lane1.startswith(":"):
-            self._stop_done_lane = None
-        # full stop at a stop-controlled entry: hold it STOP_WAIT_S, then the entry is done
+        self._note_stop(lane0, snap)
         stop_d = self._signals.stop_distance_m
-        if (
-            stop_d is not None
-            and stop_d < expert.STOP_SIGN_MARGIN_M + 3.0
-            and v1 < expert.STOPPED_MPS
-        ):
-            self._stop_wait_s += dt
-            if self._stop_wait_s >= expert.STOP_WAIT_S and perception.junction_clear(
-                snap.agents, self._signals.stop_junction, self._is_kerb, self._stop_foes()
-            ):
-                self._stop_done_lane = lane1
-        else:
-            self._stop_wait_s = 0.0
         # did SUMO hold the ego below the expert's command?
         v_exp = min(self._target, v0 + p.ego_accel_mps2 * dt)
         v_exp = max(v_exp, v0 - EGO_DECEL_SLACK * p.ego_comfort_decel_mps2 * dt)
@@ -547,6 +535,27 @@ class World:
         self._ego_collisions = tuple((c.collider, c.victim, c.kind) for c in mine)
         return mine
 
+    def _note_stop(self, lane0: str, snap: Snapshot) -> None:
+        """Full stop at a stop-controlled entry: held STOP_WAIT_S (and the junction clear), the
+        entry is done; entering a junction forgets it. Either driver: the expert's rules read
+        it (ExpertInput.stop_done)."""
+        lane1, v1 = snap.ego.lane_id, snap.ego.speed_mps
+        if lane1 != lane0 and lane1.startswith(":"):
+            self._stop_done_lane = None
+        stop_d = self._signals.stop_distance_m
+        if (
+            stop_d is not None
+            and stop_d < expert.STOP_SIGN_MARGIN_M + 3.0
+            and v1 < expert.STOPPED_MPS
+        ):
+            self._stop_wait_s += self.config.step_s
+            if self._stop_wait_s >= expert.STOP_WAIT_S and perception.junction_clear(
+                snap.agents, self._signals.stop_junction, self._is_kerb, self._stop_foes()
+            ):
+                self._stop_done_lane = lane1
+        else:
+            self._stop_wait_s = 0.0
+
     def _note_red_light(self, lane0: str, lane1: str, first_state: str) -> None:
         """The ego entered a junction (an internal lane) through a link that was red."""
         self._entered_on_red = (
@@ -579,6 +588,8 @@ class World:
         self._snap = snap
         lane1 = snap.ego.lane_id
         self._note_red_light(lane0, lane1, first_state)
+        if lane1:
+            self._note_stop(lane0, snap)
         self._reason = "none"
         st.distance_m += snap.ego.speed_mps * dt
         st.speed_sum += snap.ego.speed_mps
@@ -661,6 +672,79 @@ class World:
             if self.ended is not None:
                 break
         self._stats.wall_s += time.perf_counter() - t0
+
+    def expert_plan(
+        self, times_s: tuple[float, ...] = WAYPOINT_TIMES_S
+    ) -> tuple[np.ndarray, expert.Decision] | None:
+        """The privileged expert's plan from the ego's state now, whoever drives it: where its
+        box centre would be at each of `times_s` ((len(times_s), 2), world frame, m) and its
+        decision now; None off the network. The plan is `expert.rollout` along the route's
+        lanes from the lane point nearest the ego's front (so an ego beside its lane is led
+        back to the lane's centre), in a world that keeps its velocity. With the expert
+        driving, its first step is the command `step()` gives next."""
+        if not self._snap.ego.lane_id:
+            return None
+        p = self.profile
+        dists, dec = expert.rollout(
+            self._expert_input(), p, times_s, EGO_DECEL_SLACK * p.ego_comfort_decel_mps2
+        )
+        path = self._plan_path()
+        yaw = self._snap.ego.yaw_rad
+        return route.centres_along(path, dists, EGO_DIMS_M[0], yaw), dec
+
+    def _plan_path(self) -> route.Path:
+        """The path the expert's plan follows, from where the ego's front is: along the route's
+        lanes (inside a junction: the route's own passage, whatever internal lane SUMO maps a
+        placed ego to where passages overlap), along the next lane over where the ego's lane
+        does not lead along its route (what SUMO's strategic lane changing reads,
+        getBestLanes), starting beside that lane's centre line as far as the ego is and
+        merging into it within LANE_CHANGE_S of driving (SUMO's lane changes in the data take
+        as long: sumo.py --lanechange.duration)."""
+        ego = self._snap.ego
+        front = np.array([ego.front_xy_m])
+        ahead = self._route[self._route_index() + 1 :]
+        target = None
+        if ego.lane_id.startswith(":"):
+            passage = self._passage(ahead)
+            if passage and ego.lane_id not in passage:
+                target = min(passage, key=lambda lid: self._lane_gap(lid, front)[1])
+        else:
+            self._last_lane = ego.lane_id
+            offset = self._sumo.ego_lane_offset()
+            edge, idx = ego.lane_id.rsplit("_", 1)
+            k = int(idx) + (1 if offset > 0 else -1)
+            if offset != 0 and 0 <= k < self._net.lane_count(edge):
+                target = f"{edge}_{k}"
+        path = self._path
+        if target is not None:
+            pos = self._lane_gap(target, front)[0]
+            if target.startswith(":"):  # path_ahead walks out of the junction by itself
+                exit_lane = route.exit_chain(self._net, target)[-1:]
+                links = (
+                    route.route_links(self._net, exit_lane[0], ahead[1:], 4) if exit_lane else ()
+                )
+            else:
+                links = route.route_links(self._net, target, ahead, 4)
+            path = route.path_ahead(self._net, target, pos, links, ego.front_xy_m, ego.yaw_rad)
+        beside = float((front[0] - path.pts[0]) @ path.segments.normal)  # m left of its start
+        return route.shifted(path, beside, LANE_CHANGE_S * max(ego.speed_mps, 3.0))
+
+    def _passage(self, ahead: tuple[str, ...]) -> list[str]:
+        """The internal lanes of the junction passage from the last lane the ego was on before
+        it to the route's next edge ([] if none)."""
+        if not ahead or not self._last_lane:
+            return []
+        links = route.route_links(self._net, self._last_lane, ahead, 1)
+        if not links or not links[0].via_lane_id:
+            return []
+        return route.via_chain(self._net, links[0].via_lane_id)
+
+    def _lane_gap(self, lane_id: str, xy: np.ndarray) -> tuple[float, float]:
+        """(position along lane `lane_id` in lane-length units, distance from it, m) of the
+        point (1, 2) `xy`."""
+        lane = self._net.lane(lane_id)
+        s, d, _ = route.project(xy, lane.pts, lane.cum_m, lane.segments)
+        return float(s[0]) * lane.length_m / max(float(lane.cum_m[-1]), 1e-9), float(d[0])
 
     @property
     def time_s(self) -> float:
