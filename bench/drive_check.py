@@ -7,7 +7,7 @@ Steps (each skipped when its output is already there, so a stopped check resumes
 1. `datagen build` of --frames in the eight training towns (--recovery: the share of recovery
    frames, sensed from a shifted rig; data/README.md), and `drive collect` of --dart-frames
    driven by the expert's plan with DART-style perturbations (--noise; drive/collect.py);
-2. per training seed, `train fit --config tiny` (--val-towns held out of training), then
+2. per training seed, `train fit --config tiny --arch A` (--val-towns held out of training), then
    --dagger-rounds rounds of `drive collect` (the model drives, the expert labels; --beta) and a
    fine-tune on the union (`train fit --init`);
 3. `drive eval` of the route sets: `dev` (the training towns' short routes, where choices are
@@ -83,6 +83,7 @@ def main() -> None:
     p.add_argument("--noise", type=float, default=0.15, help="drive collect --noise")
     p.add_argument("--epochs", type=int, default=6)
     p.add_argument("--val-towns", default="downtown")
+    p.add_argument("--arch", choices=("paper", "ours"), default="paper", help="train fit --arch")
     p.add_argument("--seeds", default="0", help="training seeds, comma-separated")
     p.add_argument("--dagger-rounds", type=int, default=1)
     p.add_argument("--dagger-frames", type=int, default=4000)
@@ -122,7 +123,16 @@ def main() -> None:
     models: dict[int, Path] = {}
     for seed in seeds:
         fit_dir = out / f"fit-s{seed}"
-        common = ["--config", "tiny", "--val-towns", args.val_towns, "--seed", seed]
+        common = [
+            "--config",
+            "tiny",
+            "--arch",
+            args.arch,
+            "--val-towns",
+            args.val_towns,
+            "--seed",
+            seed,
+        ]
         if not (fit_dir / "done").exists():
             wall[f"fit-s{seed}"] = run(
                 [BIN / "train", "fit", "--shards", ",".join(base), "--epochs", args.epochs,
