@@ -490,3 +490,24 @@ def test_pooled_pixel_lamps_equal_the_max_pool_of_the_full_maps(layout):
     got = torch.autograd.grad(fast, list(lamps.parameters()), grad)
     for w, g in zip(want, got):
         assert torch.allclose(w, g, rtol=1e-4, atol=1e-5)
+
+
+def test_without_the_speed_input_the_plan_does_not_depend_on_the_speed():
+    from training.config import architecture
+
+    torch.manual_seed(0)
+    image, lidar, speed, target = _inputs(2)
+    for base, arch in ((TINY, "paper + speed_input"), (preset("tiny", "ours")[0], None)):
+        blind = IIDSU(dataclasses.replace(base, speed_input=False)).eval()
+        seeing = IIDSU(base).eval()
+        seeing.load_state_dict(blind.state_dict())  # the same weights, the same modules
+        with torch.no_grad():
+            still = blind.plan(image, lidar, torch.zeros_like(speed), target)
+            fast = blind.plan(image, lidar, torch.full_like(speed, 3.0), target)
+            assert torch.equal(still, fast)
+            assert torch.equal(blind(image, lidar, speed, target)["planning"], fast)
+            assert not torch.allclose(seeing.plan(image, lidar, speed + 3.0, target), fast)
+        if arch:
+            assert architecture(blind.cfg) == arch
+        else:  # ours without the speed input is no longer `ours`
+            assert architecture(blind.cfg).endswith("speed_input")

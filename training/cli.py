@@ -96,6 +96,7 @@ MODEL_FLAGS = {
     "no_weather": "weather",
     "single_frame_lidar": "single_frame_lidar",
     "planner_speed": "planner_speed",
+    "speed_input": "speed_input",
     "camera_traffic": "camera_traffic",
     "traffic_pool": "traffic_pool",
     "lamp_channels": "lamp_channels",
@@ -243,6 +244,13 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         "--planner-speed",
         action=argparse.BooleanOptionalAction,
         help="ours: the planner's MLP also reads the ego speed",
+    )
+    ours.add_argument(
+        "--speed-input",
+        action=argparse.BooleanOptionalAction,
+        help="--no-speed-input: ours, in neither architecture: the model never reads the ego "
+        "speed (fusion and planner get 0), against the inertia of a model that plans from it "
+        "(docs/closed-loop.md)",
     )
     ours.add_argument(
         "--camera-traffic",

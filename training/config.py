@@ -92,6 +92,11 @@ class ModelConfig:
     # In training, drop that correction per frame and logit with this probability (scaled as
     # dropout); 0 = off.
     traffic_residual_dropout: float = 0.0
+    # Ours, in neither architecture (EXTRA_MODEL): False = the model never reads the measured ego
+    # speed (the fusion's velocity embedding and, with planner_speed, the planner get 0). A
+    # tiny model trained with it planned from the speed input alone: standing with the speed
+    # set to 0, going with it set to 3 m/s, red light or not (docs/closed-loop.md, 2026-12-06).
+    speed_input: bool = True
 
     def __post_init__(self):
         if len(self.depths) != 4 or len(self.dims) != 4:
@@ -151,9 +156,12 @@ class ModelConfig:
     @property
     def additions(self) -> tuple[str, ...]:
         """The additions of ours this config switches on (fields of OURS_MODEL that differ
-        from the paper's model), in OURS_MODEL's order; () for the paper's model."""
+        from the paper's model), in OURS_MODEL's order, then EXTRA_MODEL's; () for the paper's
+        model."""
         paper = ModelConfig()
-        return tuple(k for k in OURS_MODEL if getattr(self, k) != getattr(paper, k))
+        return tuple(
+            k for k in (*OURS_MODEL, *EXTRA_MODEL) if getattr(self, k) != getattr(paper, k)
+        )
 
     @classmethod
     def from_dict(cls, d: dict) -> ModelConfig:
@@ -258,6 +266,9 @@ OURS_MODEL: dict[str, object] = {
 """The additions of ours to ModelConfig, with the values `--arch ours` sets (each field's
 comment says what it does; docs/learning.md what it was measured to do)."""
 
+EXTRA_MODEL = ("speed_input",)
+"""Options of ours outside both architectures (each field's comment says what it does)."""
+
 OURS_TRAIN: dict[str, object] = {"zoom_out": 0.55}
 """The addition of ours to TrainConfig that `--arch ours` sets."""
 
@@ -287,6 +298,7 @@ def architecture(model: ModelConfig, train: TrainConfig | None = None) -> str:
     if not on:
         return "paper"
     ours = all(getattr(model, k) == v for k, v in OURS_MODEL.items())
+    ours = ours and not any(k in on for k in EXTRA_MODEL)
     if ours and (train is None or all(getattr(train, k) == v for k, v in OURS_TRAIN.items())):
         return "ours"
     return "paper + " + ", ".join(on)

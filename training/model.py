@@ -206,6 +206,10 @@ class IIDSU(nn.Module):
         """
         return self._encode(image, lidar, speed)[0]
 
+    def _speed(self, speed: torch.Tensor) -> torch.Tensor:
+        """The speed the model reads: as measured, or 0 without `cfg.speed_input` (ours)."""
+        return speed if self.cfg.speed_input else torch.zeros_like(speed)
+
     def _encode(
         self, image: torch.Tensor, lidar: torch.Tensor, speed: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
@@ -217,6 +221,7 @@ class IIDSU(nn.Module):
                 f"LiDAR input has {lidar.shape[1]} channels; this model takes "
                 f"{self.cfg.lidar_in_channels} (single_frame_lidar={self.cfg.single_frame_lidar})"
             )
+        speed = self._speed(speed)
         image = (image.float() / 255.0 - self.mean) / self.std
         clip = self.cfg.lidar_clip_count
         x_img = self.image_encoder.stem(image)  # (B, dims[0], H / 4, W / 4)
@@ -251,7 +256,10 @@ class IIDSU(nn.Module):
         out = {}
         for name, head in self.heads.items():
             f_head = self.eca[name](f)  # ECA: this head's channel weights on F_DSU
-            out[name] = head(f_head, target_point, speed) if name == "planning" else head(f_head)
+            if name == "planning":
+                out[name] = head(f_head, target_point, self._speed(speed))
+            else:
+                out[name] = head(f_head)
         if self.camera_traffic is not None:  # ours (training/lamps.py)
             camera = self.camera_traffic(lamps, first_stage, self.image_encoder.stages)
             out["camera_traffic"] = camera
@@ -270,4 +278,4 @@ class IIDSU(nn.Module):
         """The planning output alone, (B, T_future, 2) waypoints in m (ego frame): what driving
         needs, without the dense heads' cost. Inputs as in `forward`."""
         f = self.encode(image, lidar, speed)
-        return self.heads["planning"](self.eca["planning"](f), target_point, speed)
+        return self.heads["planning"](self.eca["planning"](f), target_point, self._speed(speed))
