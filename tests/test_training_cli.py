@@ -149,6 +149,10 @@ def test_fit_builds_the_papers_model_by_default_and_ours_with_one_flag(run, tmp_
     assert TrainConfig.from_dict(state["train_config"]).zoom_out == 0.55
     assert main(["eval", "--ckpt", str(ours / "last.pt"), "--shards", str(shards)]) == 0
     # one addition on the paper's model
+    argv = ["fit", "--shards", str(shards), "--config", "tiny", "--no-speed-input", "--epochs", "1"]
+    assert main(argv + ["--workers", "0", "--out", str(tmp_path / "blind")]) == 0
+    cfg = ModelConfig.from_dict(load_checkpoint(tmp_path / "blind" / "last.pt")["model_config"])
+    assert not cfg.speed_input and architecture(cfg) == "paper + speed_input"
     argv = ["fit", "--shards", str(shards), "--config", "tiny", "--planner-speed", "--epochs", "2"]
     assert main(argv + ["--workers", "0", "--out", str(tmp_path / "one"), "--seed", "3"]) == 0
     cfg = ModelConfig.from_dict(load_checkpoint(tmp_path / "one" / "last.pt")["model_config"])
