@@ -67,7 +67,7 @@ from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests/ and this tree's code
 
 from tests.synthetic import write_shards  # noqa: E402
-from training import data, fit  # noqa: E402
+from training import data, decode, fit  # noqa: E402
 from training.config import PRESETS  # noqa: E402
 from training.device import autocast, to_device  # noqa: E402
 from training.losses import compute_losses  # noqa: E402
@@ -232,7 +232,7 @@ def profile_loader(root: Path, frames: int = 96, batch: int = 8) -> None:
         timed("PNG decode (LiDAR)", codecs.decode_lidar_bev, rows["lidar_bev"][i])
         timed(
             f"PNG decode + downsample (BEV, R={R})",
-            lambda b: data.downsample_bev(codecs.decode_bev_semantic(b), R),
+            lambda b: decode.downsample_bev(codecs.decode_bev_semantic(b), R),
             rows["bev_semantic"][i],
         )
         chw = timed(

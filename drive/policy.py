@@ -8,7 +8,7 @@ A non-privileged policy returns 4 waypoints (ego frame, m, +0.5 .. +2.0 s) from 
 instant; drive/controller.py turns them into the ego's motion. The checkpoint policy sees what
 the model was trained on (paper Sec. III-A): the camera and the 2 Hz LiDAR BEV history from the
 sensors the data was recorded with (datagen.episode.Sensors), encoded as in the shards and
-decoded by the trainer's own `training.data.model_inputs`, the ego's speed and the route's
+decoded by the trainer's own `training.decode.model_inputs`, the ego's speed and the route's
 target point in the ego frame (the model reads no command).
 """
 
@@ -97,7 +97,7 @@ class ModelPolicy:
     ) -> np.ndarray:
         """(4, 2) waypoints, ego frame, m, from one instant's encoded sensors (`ground_png`, the
         current sweep's ground channel, is read by a single-frame LiDAR model only)."""
-        from training.data import model_inputs
+        from training.decode import model_inputs
         from training.device import autocast
 
         torch = self.torch

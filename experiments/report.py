@@ -90,15 +90,15 @@ def variant_routes(out: Path, preset, kind: str) -> dict[str, list[dict]]:
 
 def closed_loop(docs: dict[str, list[dict]]) -> dict[str, Summary]:
     """Per variant, drive/score.py's Summary over its pooled routes (per-km rates, counts)."""
-    from drive.evaluate import route_score
+    from drive.summary import route_score
 
     return {v: summarise([route_score(d) for d in ds]) for v, ds in docs.items()}
 
 
 def route_means(docs: list[dict]) -> dict[str, dict[str, float]]:
     """Per route id, its DS, RC and IS averaged over its repetitions (a failed drive: DS 0)."""
-    from drive.evaluate import route_score
     from drive.score import per_route
+    from drive.summary import route_score
 
     return {
         r["route_id"]: {"ds": r["ds"], "rc": r["rc"], "is": r["is"]}
@@ -367,7 +367,7 @@ def figures(out: Path, held: dict[str, dict[int, list[dict]]], rows: dict) -> li
 
 def worst_videos(out: Path, held: dict[str, dict[int, list[dict]]]) -> list[str]:
     """Per variant, a link to the video of its worst held-out drive (lowest DS), if recorded."""
-    from drive.evaluate import result_name
+    from drive.summary import result_name
 
     lines = []
     for v, seeds in held.items():

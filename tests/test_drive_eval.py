@@ -100,7 +100,7 @@ def test_bad_policies_are_one_line_errors(route_file, tmp_path, capsys):
     junk = tmp_path / "junk.pt"
     junk.write_bytes(b"not a checkpoint")
     assert "not a checkpoint" in _error(capsys, base + ["--policy", f"ckpt:{junk}"])
-    assert "expected expert, constant" in _error(capsys, base + ["--policy", "human"])
+    assert "expected expert, expert-plan, constant" in _error(capsys, base + ["--policy", "human"])
     assert not (tmp_path / "o").exists()
 
 

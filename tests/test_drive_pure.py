@@ -366,7 +366,7 @@ def test_standing_still_for_90_s_is_agent_blocked():
 
 
 def test_summary_of_hundreds_of_routes_is_the_mean_of_their_scores():
-    from drive.evaluate import format_summary, summary_doc
+    from drive.summary import format_summary, summary_doc
 
     rng = np.random.default_rng(0)
     docs = []

@@ -7,9 +7,8 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 
-from tests.synthetic import synthetic_table
-from tests.test_training_data import write_shards
-from training import cache, data
+from tests.synthetic import synthetic_table, write_shards
+from training import cache, data, decode
 
 R = 32
 
@@ -126,8 +125,8 @@ def test_an_interrupted_fill_leaves_no_entry(shards, tmp_path, monkeypatch):
             raise KeyboardInterrupt  # as a user's Ctrl-C mid-shard
         return real(rows, i, output_px)
 
-    real = data.decode_inputs
-    monkeypatch.setattr(data, "decode_inputs", failing)
+    real = decode.decode_inputs
+    monkeypatch.setattr(decode, "decode_inputs", failing)
     with pytest.raises(KeyboardInterrupt):
         cache.prepare(files, cache.Inputs(R), tmp_path, 1 << 40, log=print)
     monkeypatch.undo()

@@ -9,7 +9,7 @@ import pytest
 import schemas
 from schemas import codecs
 from tests.synthetic import synthetic_table, write_shards
-from training import data
+from training import data, decode
 from training.errors import UserError
 from training.targets import centres_to_objects, decode_centres, render_density, visible_boxes
 
@@ -165,11 +165,11 @@ def test_downsampling_keeps_lane_markings():
     bev = np.zeros((256, 256), np.uint8)
     bev[:, 64:192] = 1  # a 16 m road
     bev[:, 127] = 2  # a one-pixel (12 cm) centre line
-    small = data.downsample_bev(bev, 64)
+    small = decode.downsample_bev(bev, 64)
     assert small.shape == (64, 64)
     assert (small[:, 31] == 2).all() and (small == 2).sum() == 64
     assert (small[:, 16:31] == 1).all() and (small[:, :16] == 0).all()
-    assert (data.downsample_bev(bev, 256) == bev).all()
+    assert (decode.downsample_bev(bev, 256) == bev).all()
 
 
 def test_detection_targets_need_lidar_hits():

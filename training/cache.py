@@ -2,7 +2,7 @@
 
 Without it every epoch decodes each frame's camera JPEG and LiDAR and BEV PNGs again (about
 4 ms a frame on one core, docs/speed.md). The cache keeps what the loader's decoding returns
-(`data.decode_inputs`: the image and LiDAR the model reads and the BEV target at the model's
+(`decode.decode_inputs`: the image and LiDAR the model reads and the BEV target at the model's
 R) as uint8 arrays in memory-mapped .npy files, one entry per shard file:
 
     ROOT/<key>/image.npy    (N, 3, 256, 256) uint8 RGB            N: the shard's rows, file order
@@ -44,12 +44,13 @@ import pyarrow.parquet as pq
 
 import schemas
 from schemas.bev import BEV_SIZE_PX
+from training import decode
 
 CACHE_VERSION = 1
-"""Bump when `data.decode_inputs` changes what it returns for the same shard bytes."""
+"""Bump when `decode.decode_inputs` changes what it returns for the same shard bytes."""
 
 ARRAYS = ("image", "lidar", "bev")
-"""The entry's arrays, in `data.decode_inputs`'s order."""
+"""The entry's arrays, in `decode.decode_inputs`'s order."""
 ENTRY = "entry.json"
 SHARD_HASHES = "shards.json"  # memo: (path, size, mtime, inode) -> the file's sha256
 TMP_PREFIX = ".tmp-"
@@ -73,7 +74,7 @@ class Inputs:
     Attributes:
         output_px: R, the side of the BEV target.
         single_frame_lidar: the LiDAR input is the current sweep only (2 channels, read from
-            `lidar_ground_t` and ch1), as `data.model_inputs` builds it.
+            `lidar_ground_t` and ch1), as `decode.model_inputs` builds it.
     """
 
     output_px: int
@@ -194,8 +195,6 @@ def _remove_stale_tmp(root: Path) -> None:
 def fill_entry(shard: str, inputs: Inputs, root: str, key: str) -> bool:
     """Decode every row of `shard` into the entry ROOT/key (written in a temporary directory,
     then renamed). Returns False if another process put the entry there first."""
-    from training import data  # data imports this module
-
     root_path = Path(root)
     tmp = root_path / f"{TMP_PREFIX}{os.getpid()}-{uuid.uuid4().hex}"
     tmp.mkdir(parents=True)
@@ -209,12 +208,12 @@ def fill_entry(shard: str, inputs: Inputs, root: str, key: str) -> bool:
             )
             for name in ARRAYS
         }
-        columns = data.blob_columns(inputs.single_frame_lidar)
+        columns = decode.blob_columns(inputs.single_frame_lidar)
         row = 0
         for batch in f.iter_batches(32, columns=columns, use_threads=False):
-            rows = data.blob_arrays(batch)
+            rows = decode.blob_arrays(batch)
             for i in range(batch.num_rows):
-                for name, value in zip(ARRAYS, data.decode_inputs(rows, i, inputs.output_px)):
+                for name, value in zip(ARRAYS, decode.decode_inputs(rows, i, inputs.output_px)):
                     arrays[name][row] = value
                 row += 1
         for a in arrays.values():
