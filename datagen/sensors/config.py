@@ -28,7 +28,7 @@ class SensorConfig:
             the t-1 and t-2 sweeps; 0 = exact recorded poses.
         target_point: the `target_point` column's form, "sparse" (the next point of the sparse
             route plan, the paper's route goal) or "dense" (30 m along the lane path); see
-            datagen/world/world.py WorldConfig. Not a sensor, but it shapes the data, so it is
+            datagen/world/config.py WorldConfig. Not a sensor, but it shapes the data, so it is
             recorded here (iidsu.config_json) and set with `--sensor target_point=dense`.
         recovery_share: the share of frames sensed from a shifted and turned rig (recovery
             frames, datagen/episode.py `_rig`; TransFuser++'s camera augmentation, Jaeger et

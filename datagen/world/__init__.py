@@ -2,6 +2,7 @@
 
 Modules (data flows down):
     towns.py        the built-in towns (SUMO networks from recipes, cached) and network checks
+    config.py       WorldConfig: one episode's network, seed, conditions, who drives the ego
     behaviour.py    behaviour profiles (SUMO vType tables) and the weather -> behaviour draw
     expert.py       the expert ego's target speed from named rules: pure
     fleet.py        road-user types and box sizes
@@ -19,6 +20,7 @@ World, WorldConfig, record` stays the one entry point.
 """
 
 from datagen.world.behaviour import EGO_DECEL_SLACK
+from datagen.world.config import EGO_DRIVERS, WARMUP_S, WorldConfig
 from datagen.world.fleet import (
     EGO_DIMS_M,
     EGO_ID,
@@ -38,12 +40,9 @@ from datagen.world.world import (
     AGENT_RADIUS_M,
     BLOCKED_S,
     COLLISION_DROP_S,
-    EGO_DRIVERS,
-    WARMUP_S,
     EgoCommand,
     EgoTruth,
     World,
-    WorldConfig,
     record,
 )
 
