@@ -81,6 +81,7 @@ from datagen.world.behaviour import EGO_DECEL_SLACK, PROFILES, Profile
 from datagen.world.config import EGO_DRIVERS, WorldConfig
 from datagen.world.fleet import EGO_DIMS_M, EGO_ID, dims
 from datagen.world.route import PATH_LOOKAHEAD_M, SIGNAL_RANGE_M
+from datagen.world.rules import RuleBook, stop_foes
 from datagen.world.sumo import Collision, Snapshot, StepEvents, Sumo, box_centre
 from datagen.world.traffic import Traffic
 from schemas import FRAME_PERIOD_S, WAYPOINT_TIMES_S, WEATHERS
@@ -159,7 +160,6 @@ class _Stats:
     wall_s: float = 0.0
     collisions: int = 0
     other_collisions: int = 0
-    red_light_violations: int = 0
     teleports: int = 0
     hard_brakes: int = 0
     reroutes: int = 0
@@ -216,21 +216,19 @@ class World:
         self._route_end_m: float | None = None
         self._reason = "none"
         self._target = 0.0
-        self._stop_done_lane: str | None = None
-        self._stop_wait_s = 0.0
         self._standing_s = 0.0
         self._sticky: route.Sticky | None = None  # the junction a turn command was given for
         self._plan: tuple[route.PlanPoint, ...] = ()  # the sparse route plan (target_point)
         self._plan_k = 0  # index of the current target in it
         self._plan_i = 0  # externally driven: index in self._route of the ego's edge
         self._ego_collisions: tuple[tuple[str, str, str], ...] = ()
-        self._entered_on_red = False
         self._on_plan = True  # SUMO's route of the ego is the planned one (from the offset)
         self._last_lane = ""  # the last lane outside a junction the expert's plan saw
         try:
             _open_world = self
             self._sumo = Sumo(config.net_path, self.profile, config.step_s, config.seed)
             self._net = self._sumo.net
+            self._rules = RuleBook(self._net, config.step_s, self._is_kerb)
             roads = self._sumo.roads(config.net_path)
             self._traffic = Traffic(self._sumo, roads, self._rng, config.net_path)
             self._populate()
@@ -331,7 +329,11 @@ class World:
         stop_d = sig.stop_distance_m
         if stop_d is not None and sig.stop_junction and stop_d < STOP_FOE_CHECK_M:
             stop_foe = perception.foe_eta_s(
-                self._snap.agents, self._net, sig.stop_junction, ego.road_id, foes=self._stop_foes()
+                self._snap.agents,
+                self._net,
+                sig.stop_junction,
+                ego.road_id,
+                foes=stop_foes(self._net, self._snap.links),
             )
         green_left = None
         b = self.profile.ego_comfort_decel_mps2  # from where it can still stop comfortably
@@ -347,7 +349,7 @@ class World:
             light=sig.light,
             light_distance_m=sig.light_distance_m,
             stop_distance_m=sig.stop_distance_m,
-            stop_done=sig.stop_distance_m is not None and self._stop_done_lane == ego.lane_id,
+            stop_done=sig.stop_distance_m is not None and self._rules.stop_done_lane == ego.lane_id,
             route_end_m=route_end,
             junction_entry_m=junction[0] if junction else None,
             junction_exit_m=junction[1] if junction else None,
@@ -356,12 +358,6 @@ class World:
             green_left_s=green_left,
             stop_foe_eta_s=stop_foe,
         )
-
-    def _stop_foes(self) -> frozenset[str] | None:
-        """Internal lanes of passages that conflict with the ego's through its next stop sign
-        (sumo.Network.internal_foes); None without one."""
-        via = next((k.via_lane_id for k in self._snap.links if k.state in ("s", "w")), "")
-        return self._net.internal_foes(via) if via else None
 
     def _set_route(self, edges: list[str] | tuple[str, ...]) -> None:
         """Cache the ego's route and the length of each of its suffixes."""
@@ -438,8 +434,8 @@ class World:
         lane1 = snap.ego.lane_id
         if self._route_end_m is not None and self._route_end_m < 5.0 and v1 < expert.STOPPED_MPS:
             self._end("route_end", "the ego stopped at the end of its route")
-        self._note_red_light(lane0, lane1, first_state)
-        self._note_stop(lane0, snap)
+        self._rules.note_red_light(lane0, lane1, first_state)
+        self._rules.note_stop(lane0, snap, self._signals)
         stop_d = self._signals.stop_distance_m
         # did SUMO hold the ego below the expert's command?
         v_exp = min(self._target, v0 + p.ego_accel_mps2 * dt)
@@ -490,35 +486,6 @@ class World:
         self._ego_collisions = tuple((c.collider, c.victim, c.kind) for c in mine)
         return mine
 
-    def _note_stop(self, lane0: str, snap: Snapshot) -> None:
-        """Full stop at a stop-controlled entry: held STOP_WAIT_S (and the junction clear), the
-        entry is done; entering a junction forgets it. Either driver: the expert's rules read
-        it (ExpertInput.stop_done)."""
-        lane1, v1 = snap.ego.lane_id, snap.ego.speed_mps
-        if lane1 != lane0 and lane1.startswith(":"):
-            self._stop_done_lane = None
-        stop_d = self._signals.stop_distance_m
-        if (
-            stop_d is not None
-            and stop_d < expert.STOP_SIGN_MARGIN_M + 3.0
-            and v1 < expert.STOPPED_MPS
-        ):
-            self._stop_wait_s += self.config.step_s
-            if self._stop_wait_s >= expert.STOP_WAIT_S and perception.junction_clear(
-                snap.agents, self._signals.stop_junction, self._is_kerb, self._stop_foes()
-            ):
-                self._stop_done_lane = lane1
-        else:
-            self._stop_wait_s = 0.0
-
-    def _note_red_light(self, lane0: str, lane1: str, first_state: str) -> None:
-        """The ego entered a junction (an internal lane) through a link that was red."""
-        self._entered_on_red = (
-            lane1.startswith(":") and not lane0.startswith(":") and first_state in ("r", "u")
-        )
-        if self._entered_on_red:
-            self._stats.red_light_violations += 1
-
     def _step_external(self, command: EgoCommand) -> None:
         """One step with the ego placed by an external controller (see the module docstring)."""
         sumo = self._sumo
@@ -542,9 +509,9 @@ class World:
             snap = sumo.snapshot()  # links and signals along the restored route
         self._snap = snap
         lane1 = snap.ego.lane_id
-        self._note_red_light(lane0, lane1, first_state)
+        self._rules.note_red_light(lane0, lane1, first_state)
         if lane1:
-            self._note_stop(lane0, snap)
+            self._rules.note_stop(lane0, snap, self._signals)
         self._reason = "none"
         st.distance_m += snap.ego.speed_mps * dt
         st.speed_sum += snap.ego.speed_mps
@@ -772,7 +739,7 @@ class World:
             light_distance_m=sig.light_distance_m if on_net else None,
             tls_id=nxt.tls_id if nxt else "",
             tls_link_index=nxt.link_index if nxt else -1,
-            entered_on_red=self._entered_on_red,
+            entered_on_red=self._rules.entered_on_red,
             stop_distance_m=sig.stop_distance_m if on_net else None,
             collisions=self._ego_collisions,
         )
@@ -792,7 +759,7 @@ class World:
             "wall_s": round(st.wall_s, 3),
             "collisions": st.collisions,
             "other_collisions": st.other_collisions,
-            "red_light_violations": st.red_light_violations,
+            "red_light_violations": self._rules.red_light_violations,
             "teleports": st.teleports,
             "hard_brakes": st.hard_brakes,
             "reroutes": st.reroutes,
