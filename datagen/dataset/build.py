@@ -55,7 +55,7 @@ from schemas.errors import Stopped
 
 HELP = "generate the dataset: driving episodes across towns and weathers, as Parquet shards"
 SUMMARY_COUNTS = (
-    "collisions",  # the ego's (world.py counts SUMO's collision checks, junctions included)
+    "collisions",  # the ego's (simulation.py counts SUMO's collision checks, junctions included)
     "other_collisions",
     "red_light_violations",
     "teleports",

@@ -10,7 +10,11 @@ Modules (data flows down):
     route.py        route ahead, command, target point, signals: pure geometry
     perception.py   the ego's obstacles and who holds it back: pure
     traffic.py      the population in a bubble around the ego
-    world.py        the step loop (World, WorldConfig, record)
+    rules.py        the ego's record against stop signs and red lights
+    simulation.py   the running episode both drivers step: SUMO, traffic, the ego's route
+    planning.py     what the expert reads (ExpertInput) and its plan, from any ego state
+    external.py     the ego placed by an external controller (EgoCommand)
+    world.py        the expert's step loop, the seam for who drives, World's views, record
 
 Who drives the ego is one seam: WorldConfig.ego_driver "expert" (default) or "external", then
 World.step(EgoCommand(pose, speed)) every step and World.truth() for scoring (world.py).
@@ -21,6 +25,7 @@ World, WorldConfig, record` stays the one entry point.
 
 from datagen.world.behaviour import EGO_DECEL_SLACK
 from datagen.world.config import EGO_DRIVERS, WARMUP_S, WorldConfig
+from datagen.world.external import EgoCommand
 from datagen.world.fleet import (
     EGO_DIMS_M,
     EGO_ID,
@@ -34,17 +39,10 @@ from datagen.world.route import (
     SIGNAL_RANGE_M,
     TARGET_AHEAD_M,
 )
+from datagen.world.simulation import AGENT_RADIUS_M
 from datagen.world.sumo import TELEPORT_S
 from datagen.world.traffic import PED_REMOVE_M, PED_SPAWN_M, VEH_REMOVE_M, VEH_SPAWN_M
-from datagen.world.world import (
-    AGENT_RADIUS_M,
-    BLOCKED_S,
-    COLLISION_DROP_S,
-    EgoCommand,
-    EgoTruth,
-    World,
-    record,
-)
+from datagen.world.world import BLOCKED_S, COLLISION_DROP_S, EgoTruth, World, record
 
 __all__ = [
     "AGENT_RADIUS_M",

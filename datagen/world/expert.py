@@ -1,6 +1,6 @@
 """The rule-based expert: pure functions from what the ego perceives to a target speed and reason.
 
-`world.py` gathers an `ExpertInput` from libsumo each 0.1 s step; `decide` turns it into
+`planning.py` gathers an `ExpertInput` from libsumo each 0.1 s step; `decide` turns it into
 (target speed, reason). Every rule is a speed cap; the lowest cap wins and its name is the
 `expert_reason` (schemas.EXPERT_REASONS). Rules that stop the car for something ahead use the
 same comfortable-braking profile: the speed now from which the car can still reach `v_end`
@@ -31,7 +31,7 @@ Rules:
                   the line), wait for the next green: lingering inside into the crossing phase
                   got the ego hit (arterial seed 284, "v51 hit ego"; arterial, build seed 0,
                   episode 20, "v182 hit ego": a left turn begun at 14 m/s, 1 s before yellow)
-    stop_sign     come to a full stop at the stop line until `stop_done` (world.py holds the
+    stop_sign     come to a full stop at the stop line until `stop_done` (rules.py holds the
                   stop for `STOP_WAIT_S` and until no other vehicle is inside the junction), then
                   SUMO's right-of-way model decides when to enter; still at the line, the car
                   also waits while another vehicle is inside the junction or due within
