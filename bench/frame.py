@@ -84,7 +84,7 @@ def measure(
             c3, t3 = time.process_time(), time.perf_counter()
             image = sense.image(scene, frame)
             c4, t4 = time.process_time(), time.perf_counter()
-            row = labels.frame_labels(frame, future, sweep.actor_hits)
+            row = labels.frame_labels(frame, future, sweep.actor_hits).row()
             semantic = labels.bev_semantic(static.label_map, frame.ego.pose)
             c5, t5 = time.process_time(), time.perf_counter()
             codecs.encode_image(image, cfg.jpeg_quality)

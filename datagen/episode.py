@@ -270,7 +270,7 @@ def _process(
         sense, scene, seen, [now, *(sweeps[k - j] for j in range(1, HISTORY + 1))], timer
     )
     future = states[k + 1 : k + 1 + FUTURE]
-    row = labels.frame_labels(frame, future, now.actor_hits, rig)
+    row = labels.frame_labels(frame, future, now.actor_hits, rig).row()  # FrameLabels -> columns
     semantic = labels.bev_semantic(sense.static.label_map, seen.ego.pose)
     timer.lap("labels")
     row.update(

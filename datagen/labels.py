@@ -14,13 +14,16 @@ label map (datagen/sensors/labelmap.py); every position is in the ego frame at t
   expert drove (TransFuser++'s shifted-camera augmentation, Jaeger et al. 2023).
 - `waypoints`: the ego's own box centre at t+0.5..2.0 s; `target_point` and the rest as the
   simulator reports them.
+
+`frame_labels` gathers them in a `FrameLabels` (boxes as `BoxLabel`s); the writer turns that
+into the row's columns (`FrameLabels.row()`) where it builds the Parquet row.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -94,17 +97,59 @@ def in_bev_area(x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
     return (row >= 0) & (row < BEV_SIZE_PX) & (col >= 0) & (col < BEV_SIZE_PX)
 
 
+@dataclass(frozen=True)
+class BoxLabel:
+    """One agent's box at one of the labelled instants (schemas.BOX_TYPE), ego frame at t.
+
+    Attributes:
+        track_id: SUMO id of the vehicle or person.
+        cls: schemas.BOX_CLASSES.
+        t: timestep index (schemas.BOX_TIMESTEPS): 0 = t, 1 = t+0.5 s, 2 = t+1.0 s.
+        x_m, y_m: box centre, m.
+        yaw_rad: heading, counter-clockwise from the ego's +x.
+        length_m, width_m: extents along and across the heading, m.
+        speed_mps: speed along the heading, m/s.
+        lidar_points: LiDAR returns on the agent at t; 0 for t > 0.
+    """
+
+    track_id: str
+    cls: str
+    t: int
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    length_m: float
+    width_m: float
+    speed_mps: float
+    lidar_points: int
+
+    def row(self) -> dict:
+        """The `boxes` column's struct entry."""
+        return {
+            "track_id": self.track_id,
+            "cls": self.cls,
+            "t": self.t,
+            "x": self.x_m,
+            "y": self.y_m,
+            "yaw": self.yaw_rad,
+            "length": self.length_m,
+            "width": self.width_m,
+            "speed": self.speed_mps,
+            "lidar_points": self.lidar_points,
+        }
+
+
 def boxes(
     frame: FrameState, future: Sequence[FrameState], lidar_hits: dict[str, int] | None = None
-) -> list[dict]:
-    """`boxes` column entries: agents inside the BEV area at t (frame), t+0.5 s and t+1.0 s
-    (future[0], future[1]), all in the ego frame at t.
+) -> tuple[BoxLabel, ...]:
+    """The agents inside the BEV area at t (frame), t+0.5 s and t+1.0 s (future[0],
+    future[1]), all in the ego frame at t.
 
     Args:
         lidar_hits: LiDAR returns at t per track id (lidar.Sweep.actor_hits); missing: 0.
     """
     pose = frame.ego.pose
-    out: list[dict] = []
+    out: list[BoxLabel] = []
     states = [frame, *future[: len(BOX_TIMESTEPS) - 1]]
     for t, state in zip(BOX_TIMESTEPS, states):
         agents = state.agents
@@ -116,20 +161,20 @@ def boxes(
             a = agents[k]
             hits = int(lidar_hits.get(a.track_id, 0)) if (t == 0 and lidar_hits) else 0
             out.append(
-                {
-                    "track_id": a.track_id,
-                    "cls": a.cls,
-                    "t": t,
-                    "x": float(xy[k, 0]),
-                    "y": float(xy[k, 1]),
-                    "yaw": float(pose.relative_yaw(a.pose.yaw_rad)),
-                    "length": float(a.length_m),
-                    "width": float(a.width_m),
-                    "speed": float(a.speed_mps),
-                    "lidar_points": hits,
-                }
+                BoxLabel(
+                    track_id=a.track_id,
+                    cls=a.cls,
+                    t=t,
+                    x_m=float(xy[k, 0]),
+                    y_m=float(xy[k, 1]),
+                    yaw_rad=float(pose.relative_yaw(a.pose.yaw_rad)),
+                    length_m=float(a.length_m),
+                    width_m=float(a.width_m),
+                    speed_mps=float(a.speed_mps),
+                    lidar_points=hits,
+                )
             )
-    return out
+    return tuple(out)
 
 
 def waypoints(frame: FrameState, future: Sequence[FrameState]) -> list[float]:
@@ -148,18 +193,80 @@ def rig_pose(ego: Pose, shift_m: float, yaw_rad: float) -> Pose:
     return Pose(float(x), float(y), ego.yaw_rad + yaw_rad)
 
 
+@dataclass(frozen=True)
+class FrameLabels:
+    """The labels of one frame: every non-sensor column of its row (schemas.FIELDS) but the
+    episode's identity (episode_id, frame, town, weather, behaviour); `row()` names them as
+    the columns do.
+
+    Attributes:
+        time_s: simulation time, s.
+        ego_x_m, ego_y_m, ego_yaw_rad: the ego's own box centre and heading (world frame, m;
+            yaw counter-clockwise from east, wrapped to [-pi, pi]), a recovery frame's too.
+        ego_speed_mps: its speed, m/s.
+        rig_shift_m, rig_yaw_rad: the sensor rig's shift to the ego's left and turn
+            (`rig_pose`; 0, 0 but for recovery frames).
+        command: the route command (schemas.COMMANDS).
+        target_point_xy_m: the next route goal, the rig's frame at t, m.
+        waypoints_xy_m: 8 floats x0, y0, ..., x3, y3: the ego's box centre at t+0.5..2.0 s,
+            the rig's frame at t, m.
+        traffic_light, light_distance_m, stop_sign, stop_distance_m: the signal ahead and
+            the stop-controlled entry as FrameState gives them (m; None where there is none).
+        expert_reason: the rule binding the expert's speed (schemas.EXPERT_REASONS).
+        boxes: the agents in the BEV area at t, t+0.5 s and t+1.0 s, the rig's frame at t.
+    """
+
+    time_s: float
+    ego_x_m: float
+    ego_y_m: float
+    ego_yaw_rad: float
+    ego_speed_mps: float
+    rig_shift_m: float
+    rig_yaw_rad: float
+    command: str
+    target_point_xy_m: tuple[float, float]
+    waypoints_xy_m: tuple[float, ...]
+    traffic_light: str
+    light_distance_m: float | None
+    stop_sign: bool
+    stop_distance_m: float | None
+    expert_reason: str
+    boxes: tuple[BoxLabel, ...]
+
+    def row(self) -> dict:
+        """These labels as the row's columns (schemas.FIELDS), for the writer to complete with
+        the episode's identity and the sensor columns."""
+        return {
+            "time_s": self.time_s,
+            "ego_x": self.ego_x_m,
+            "ego_y": self.ego_y_m,
+            "ego_yaw": self.ego_yaw_rad,
+            "ego_speed": self.ego_speed_mps,
+            "rig_shift_m": self.rig_shift_m,
+            "rig_yaw_rad": self.rig_yaw_rad,
+            "command": self.command,
+            "target_point": list(self.target_point_xy_m),
+            "waypoints": list(self.waypoints_xy_m),
+            "traffic_light": self.traffic_light,
+            "light_distance_m": self.light_distance_m,
+            "stop_sign": self.stop_sign,
+            "stop_distance_m": self.stop_distance_m,
+            "expert_reason": self.expert_reason,
+            "boxes": [b.row() for b in self.boxes],
+        }
+
+
 def frame_labels(
     frame: FrameState,
     future: Sequence[FrameState],
     lidar_hits: dict[str, int] | None = None,
     rig: tuple[float, float] = (0.0, 0.0),
     waypoints_ego: Sequence[float] | None = None,
-) -> dict:
-    """Every non-sensor column of one row (schemas.FIELDS) except the episode's identity
-    (episode_id, frame, town, weather, behaviour) and the binary sensor columns.
+) -> FrameLabels:
+    """The labels of one frame from its state at t (`frame`) and its recorded future.
 
     `rig`: (shift_m, yaw_rad) of the sensor rig from the ego (`rig_pose`; recovery frames,
-    datagen/episode.py): every column in the ego frame is then in the rig's frame, as if the
+    datagen/episode.py): every label in the ego frame is then in the rig's frame, as if the
     ego stood there, while ego_x/ego_y/ego_yaw stay the ego's own pose. `waypoints_ego` (8
     floats, the ego frame at t) replaces the recorded future's waypoints: on-policy frames are
     labelled with the expert's plan from where the policy put the ego (drive/collect.py), and
@@ -169,23 +276,23 @@ def frame_labels(
     if rig != (0.0, 0.0):
         seen = replace(frame, ego=replace(frame.ego, pose=rig_pose(pose, *rig)))
     tp = seen.ego.pose.ego_from_world(np.array([frame.target_point_xy_m]))[0]
-    return {
-        "time_s": float(frame.time_s),
-        "ego_x": float(pose.x_m),
-        "ego_y": float(pose.y_m),
-        "ego_yaw": float(math.remainder(pose.yaw_rad, 2 * math.pi)),
-        "ego_speed": float(frame.ego.speed_mps),
-        "rig_shift_m": float(rig[0]),
-        "rig_yaw_rad": float(rig[1]),
-        "command": frame.command,
-        "target_point": [float(tp[0]), float(tp[1])],
-        "waypoints": (
+    return FrameLabels(
+        time_s=float(frame.time_s),
+        ego_x_m=float(pose.x_m),
+        ego_y_m=float(pose.y_m),
+        ego_yaw_rad=float(math.remainder(pose.yaw_rad, 2 * math.pi)),
+        ego_speed_mps=float(frame.ego.speed_mps),
+        rig_shift_m=float(rig[0]),
+        rig_yaw_rad=float(rig[1]),
+        command=frame.command,
+        target_point_xy_m=(float(tp[0]), float(tp[1])),
+        waypoints_xy_m=tuple(
             waypoints(seen, future) if waypoints_ego is None else [float(v) for v in waypoints_ego]
         ),
-        "traffic_light": frame.traffic_light,
-        "light_distance_m": frame.light_distance_m,
-        "stop_sign": bool(frame.stop_sign),
-        "stop_distance_m": frame.stop_distance_m,
-        "expert_reason": frame.expert_reason,
-        "boxes": boxes(seen, future, lidar_hits),
-    }
+        traffic_light=frame.traffic_light,
+        light_distance_m=frame.light_distance_m,
+        stop_sign=bool(frame.stop_sign),
+        stop_distance_m=frame.stop_distance_m,
+        expert_reason=frame.expert_reason,
+        boxes=boxes(seen, future, lidar_hits),
+    )

@@ -40,7 +40,7 @@ import functools
 import hashlib
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -232,8 +232,9 @@ def _row(held, future, episode, sense, labels) -> list[dict]:
     frame, encoded, label, reason, hits, full = held
     if label is None or not full:
         return []
-    row = labels.frame_labels(frame, future, hits, waypoints_ego=np.asarray(label).ravel())
-    row["expert_reason"] = reason  # the rule binding the expert's plan from here
+    labelled = labels.frame_labels(frame, future, hits, waypoints_ego=np.asarray(label).ravel())
+    # the rule binding the expert's plan from here
+    row = replace(labelled, expert_reason=reason).row()
     semantic = labels.bev_semantic(sense.static.label_map, frame.ego.pose)
     row.update(
         episode_id=episode.episode_id,

@@ -75,12 +75,12 @@ def test_boxes_lie_inside_the_bev_area_in_the_ego_frame():
     person = agent_at("p", 5.0, 3.0, cls="pedestrian", dims=(0.4, 0.5, 1.75))
     frame = frame_at(agents=(inside, behind, aside, person))
     out = labels.boxes(frame, [], {"in": 42, "behind": 7})
-    got = {(b["track_id"], b["t"]) for b in out}
+    got = {(b.track_id, b.t) for b in out}
     assert got == {("in", 0), ("p", 0)}
-    b = next(b for b in out if b["track_id"] == "in")
-    assert abs(b["x"] - 10.0) < 1e-9 and abs(b["y"] + 5.0) < 1e-9 and abs(b["yaw"] - 0.5) < 1e-9
-    assert b["lidar_points"] == 42 and b["length"] == 4.5 and b["speed"] == 3.0
-    assert next(b for b in out if b["track_id"] == "p")["lidar_points"] == 0
+    b = next(b for b in out if b.track_id == "in")
+    assert abs(b.x_m - 10.0) < 1e-9 and abs(b.y_m + 5.0) < 1e-9 and abs(b.yaw_rad - 0.5) < 1e-9
+    assert b.lidar_points == 42 and b.length_m == 4.5 and b.speed_mps == 3.0
+    assert next(b for b in out if b.track_id == "p").lidar_points == 0
 
 
 def test_future_boxes_of_a_parked_car_equal_its_current_box():
@@ -95,7 +95,7 @@ def test_future_boxes_of_a_parked_car_equal_its_current_box():
     ]
     future = _future(frame, [(parked, moved[0]), (parked, moved[1]), (), ()], ego_future)
     out = labels.boxes(frame, future, {"parked": 10})
-    by = {(b["track_id"], b["t"]): b for b in out}
+    by = {(b.track_id, b.t): b.row() for b in out}
     for t in (1, 2):
         for key in ("x", "y", "yaw", "length", "width"):
             assert abs(by[("parked", t)][key] - by[("parked", 0)][key]) < 1e-9
@@ -121,7 +121,7 @@ def test_a_row_of_labels_satisfies_the_schema():
         agents=(agent_at("car", 10.0, 1.0),), traffic_light="red", light_distance_m=12.0
     )
     future = [frame_at(agents=(agent_at("car", 10.0, 1.0),)) for _ in range(4)]
-    row = labels.frame_labels(frame, future, {"car": 30})
+    row = labels.frame_labels(frame, future, {"car": 30}).row()
     assert abs(row["target_point"][0] - 20.0) < 1e-6 and abs(row["target_point"][1]) < 1e-6
     row.update(
         episode_id="t-0-0",
