@@ -212,7 +212,10 @@ class ExpertDriver:
 
 
 class World:
-    """A SUMO episode with the expert ego (context manager; see module docstring).
+    """A SUMO episode around the ego (context manager; see the module docstring). `step()`
+    hands each step to who drives the ego (ExpertDriver, or external.ExternalDriver);
+    `state()`, `truth()`, `stats` and `expert_plan()` read the running simulation
+    (simulation.py).
 
     Attributes:
         config: the WorldConfig.
