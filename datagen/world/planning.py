@@ -6,10 +6,14 @@ snapshot: the speed limits and curvature of the path ahead, the obstacles on it 
 about to cross it (perception.py), the next signal and stop-controlled entry, the junction ahead
 and its foes, the end of the route. The expert's step (world.py) decides on it every step;
 `Planner.plan()` rolls the expert out on it (expert.rollout) along the route's lanes: the
-privileged plan a policy is labelled with and compared to (World.expert_plan).
+privileged plan a policy is labelled with and compared to (World.expert_plan), as box
+centres along the route's lanes (`centres_along`), merging from beside the lane (`shifted`).
 """
 
 from __future__ import annotations
+
+import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -26,6 +30,55 @@ from datagen.world.simulation import Simulation
 GREEN_CHECK_M = 30.0
 STOP_FOE_CHECK_M = 10.0  # within this of a stop line the expert reads its junction's foes
 LANE_CHANGE_S = 2.0  # the expert's plan changes lanes as SUMO does for it (sumo.py)
+
+
+def centres_along(
+    path: route.Path, front_s_m: Sequence[float], length_m: float, heading_rad: float | None = None
+) -> np.ndarray:
+    """(K, 2) world box centres of a car of `length_m` whose front is `front_s_m[k]` along `path`
+    (from its first point) and whose rear follows the path: the centre lies half a length back
+    from the front towards the point one length back along the path, as SUMO places a vehicle
+    from its front and back positions on its lanes. Before the path's first point the path is
+    extended straight back along `heading_rad` (the car's heading, world, rad: a car whose front
+    is at the path's start then has its centre where it is) or, without it, along the path's
+    first segment."""
+    seg = path.segments
+    u = seg.u if heading_rad is None else np.array([math.cos(heading_rad), math.sin(heading_rad)])
+    back = path.pts[0] - u * (length_m + 1.0)
+    pts = np.vstack([back, path.pts])
+    s = np.concatenate([[-(length_m + 1.0)], path.s])
+    out = np.empty((len(front_s_m), 2))
+    for k, f in enumerate(front_s_m):
+        front = np.array(route.point_along(pts, s - s[0], f - s[0]))
+        rear = np.array(route.point_along(pts, s - s[0], f - length_m - s[0]))
+        d = front - rear
+        n = float(np.hypot(d[0], d[1]))
+        out[k] = front - 0.5 * length_m * (d / n if n > 1e-6 else u)
+    return out
+
+
+def shifted(path: route.Path, offset_m: float, ramp_m: float, step_m: float = 1.0) -> route.Path:
+    """`path` moved `offset_m` to its left at its start, the offset fading out smoothly (a smooth
+    step) within `ramp_m` along it: the way from beside a lane, or from the lane before a
+    lane change, onto `path`'s lane. link_dist and seg_lanes are `path`'s."""
+    if abs(offset_m) < 1e-3:
+        return path
+    end = min(path.s[-1], ramp_m)
+    s = np.arange(0.0, end + 1e-9, step_m)
+    if len(s) < 2:
+        return path
+    pts = np.array([route.point_along(path.pts, path.s, max(d, 1e-6)) for d in s])
+    head = np.diff(pts, axis=0)
+    head = np.vstack([head, head[-1:]])
+    head /= np.maximum(np.hypot(head[:, 0], head[:, 1]), 1e-9)[:, None]
+    normal = np.stack([-head[:, 1], head[:, 0]], axis=1)
+    u = np.clip(s / max(ramp_m, 1e-6), 0.0, 1.0)
+    fade = 1.0 - u * u * (3.0 - 2.0 * u)
+    pts = np.vstack([pts + normal * (offset_m * fade)[:, None], path.pts[path.s > end + 1e-6]])
+    step = np.hypot(*np.diff(pts, axis=0).T)
+    pts = pts[np.concatenate([[True], step > 1e-6])]
+    ss = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pts, axis=0).T))])
+    return route.Path(pts, ss, path.link_dist, path.seg_lanes)
 
 
 class Planner:
@@ -116,7 +169,7 @@ class Planner:
         )
         path = self._path()
         yaw = sim.snap.ego.yaw_rad
-        return route.centres_along(path, dists, EGO_DIMS_M[0], yaw), dec
+        return centres_along(path, dists, EGO_DIMS_M[0], yaw), dec
 
     def _path(self) -> route.Path:
         """The path the expert's plan follows, from where the ego's front is: along the route's
@@ -153,7 +206,7 @@ class Planner:
                 links = route.route_links(net, target, ahead, 4)
             path = route.path_ahead(net, target, pos, links, ego.front_xy_m, ego.yaw_rad)
         beside = float((front[0] - path.pts[0]) @ path.segments.normal)  # m left of its start
-        return route.shifted(path, beside, LANE_CHANGE_S * max(ego.speed_mps, 3.0))
+        return shifted(path, beside, LANE_CHANGE_S * max(ego.speed_mps, 3.0))
 
     def _passage(self, ahead: tuple[str, ...]) -> list[str]:
         """The internal lanes of the junction passage from the last lane the ego was on before

@@ -557,31 +557,6 @@ def remaining_route_m(
     return float(rest + suffix_m[min(route_index + 1, len(suffix_m) - 1)])
 
 
-def centres_along(
-    path: Path, front_s_m: Sequence[float], length_m: float, heading_rad: float | None = None
-) -> np.ndarray:
-    """(K, 2) world box centres of a car of `length_m` whose front is `front_s_m[k]` along `path`
-    (from its first point) and whose rear follows the path: the centre lies half a length back
-    from the front towards the point one length back along the path, as SUMO places a vehicle
-    from its front and back positions on its lanes. Before the path's first point the path is
-    extended straight back along `heading_rad` (the car's heading, world, rad: a car whose front
-    is at the path's start then has its centre where it is) or, without it, along the path's
-    first segment."""
-    seg = path.segments
-    u = seg.u if heading_rad is None else np.array([math.cos(heading_rad), math.sin(heading_rad)])
-    back = path.pts[0] - u * (length_m + 1.0)
-    pts = np.vstack([back, path.pts])
-    s = np.concatenate([[-(length_m + 1.0)], path.s])
-    out = np.empty((len(front_s_m), 2))
-    for k, f in enumerate(front_s_m):
-        front = np.array(point_along(pts, s - s[0], f - s[0]))
-        rear = np.array(point_along(pts, s - s[0], f - length_m - s[0]))
-        d = front - rear
-        n = float(np.hypot(d[0], d[1]))
-        out[k] = front - 0.5 * length_m * (d / n if n > 1e-6 else u)
-    return out
-
-
 def route_links(net: RoadNet, lane_id: str, route_ahead: Sequence[str], n: int) -> tuple[Link, ...]:
     """Up to `n` consecutive links from `lane_id` along the route's next edges `route_ahead`
     (each the first static link into the next edge; the walk stops where none leads on)."""
@@ -594,27 +569,3 @@ def route_links(net: RoadNet, lane_id: str, route_ahead: Sequence[str], n: int) 
         out.append(link)
         lane = link.lane_id
     return tuple(out)
-
-
-def shifted(path: Path, offset_m: float, ramp_m: float, step_m: float = 1.0) -> Path:
-    """`path` moved `offset_m` to its left at its start, the offset fading out smoothly (a smooth
-    step) within `ramp_m` along it: the way from beside a lane, or from the lane before a
-    lane change, onto `path`'s lane. link_dist and seg_lanes are `path`'s."""
-    if abs(offset_m) < 1e-3:
-        return path
-    end = min(path.s[-1], ramp_m)
-    s = np.arange(0.0, end + 1e-9, step_m)
-    if len(s) < 2:
-        return path
-    pts = np.array([point_along(path.pts, path.s, max(d, 1e-6)) for d in s])
-    head = np.diff(pts, axis=0)
-    head = np.vstack([head, head[-1:]])
-    head /= np.maximum(np.hypot(head[:, 0], head[:, 1]), 1e-9)[:, None]
-    normal = np.stack([-head[:, 1], head[:, 0]], axis=1)
-    u = np.clip(s / max(ramp_m, 1e-6), 0.0, 1.0)
-    fade = 1.0 - u * u * (3.0 - 2.0 * u)
-    pts = np.vstack([pts + normal * (offset_m * fade)[:, None], path.pts[path.s > end + 1e-6]])
-    step = np.hypot(*np.diff(pts, axis=0).T)
-    pts = pts[np.concatenate([[True], step > 1e-6])]
-    ss = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pts, axis=0).T))])
-    return Path(pts, ss, path.link_dist, path.seg_lanes)
