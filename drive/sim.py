@@ -18,7 +18,9 @@ import numpy as np
 from datagen.state import FrameState, Pose
 from drive.routes import Route
 
-EXPERT_GO_MPS = 1.0  # the expert "would go" when its target speed is above this
+EXPERT_GO_MPS = 1.0  # the expert "would go" when its target speed is above this ...
+FREE_REASONS = ("none", "speed_limit", "curve")  # ... for no reason to wait (a clear road, a
+# green or no light): a red light's or a queue's approach speed is above it a few metres short
 
 
 class DrivenWorld:
@@ -59,10 +61,14 @@ class DrivenWorld:
         return self._world.truth()
 
     def expert_would_go(self) -> bool:
-        """Whether the privileged expert, in the ego's place now, would drive on (its target
-        speed is above EXPERT_GO_MPS): a policy standing then is stuck, not waiting."""
+        """Whether the privileged expert, in the ego's place now, would drive on with nothing to
+        wait for (its target speed above EXPERT_GO_MPS, for none of the rules that stop it:
+        FREE_REASONS): a policy standing then is stuck, not waiting."""
         plan = self._world.expert_plan()
-        return plan is not None and plan[1].target_speed_mps > EXPERT_GO_MPS
+        if plan is None:
+            return False
+        decision = plan[1]
+        return decision.target_speed_mps > EXPERT_GO_MPS and decision.reason in FREE_REASONS
 
     def expert_waypoints(self, frame: FrameState) -> np.ndarray | None:
         """(4, 2) the privileged expert's plan from the ego's state now (World.expert_plan),

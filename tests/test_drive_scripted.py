@@ -333,3 +333,28 @@ def test_sumo_taking_out_an_ego_off_its_route_is_a_route_deviation(nets, tmp_pat
     judge_world_end(on_route, replace(last, ego=replace(last.ego, pose=Pose(-24.6, -1.6, 0.0))),
                     "route_end", "SUMO took the placed ego out", external=True)  # fmt: skip
     assert on_route.ended is None
+
+
+def test_standing_is_stuck_on_a_clear_road_and_not_before_a_red_light(nets, tmp_path):
+    """drive eval's stuck_s: standing where the expert would drive on with nothing to wait for
+    (issue 36's inertia measure); waiting a few metres short of a red light's line is not."""
+
+    def all(state):
+        def set_all():
+            n = len(ls.trafficlight.getRedYellowGreenState("C"))
+            ls.trafficlight.setRedYellowGreenState("C", state * n)
+            ls.trafficlight.setPhaseDuration("C", 1000.0)
+
+        return set_all
+
+    doc = _drive(
+        nets["light"], tmp_path, lambda f: np.zeros((4, 2)), all("G"), creep=False, max_sim_s=20.0
+    )
+    assert doc["standing_s"] > 15.0 and doc["stuck_s"] == pytest.approx(doc["standing_s"])
+
+    def to_the_light(frame):  # drive east until ~20 m short of the junction, then stand
+        return constant_waypoints(8.0) if frame.ego.pose.x_m < -25.0 else np.zeros((4, 2))
+
+    doc = _drive(nets["light"], tmp_path, to_the_light, all("r"), creep=False, max_sim_s=40.0)
+    assert doc["standing_s"] > 10.0 and doc["stuck_s"] == 0.0, doc
+    assert _counts(doc) == {}
