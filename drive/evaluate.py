@@ -396,13 +396,27 @@ def execute(
         return
     from datagen.dataset import executors
 
+    by_name = {result_name(t.route.route_id, t.repetition): t for t in tasks}
+
+    def lost(name: str, message: str) -> dict:
+        """A route whose worker died on every attempt (e.g. SUMO crashed): failed, written."""
+        task = by_name[name]
+        doc = failed_doc(task, message)
+        _write_json(Path(task.out_dir) / "routes" / f"{name}.json", doc)
+        return doc
+
     with (
         executors.stop_on_sigterm(),
         executors.make(
-            executor, route_task, workers=workers, ray_address=ray_address, noun="route"
+            executor,
+            route_task,
+            workers=workers,
+            ray_address=ray_address,
+            noun="route",
+            on_lost=lost,
         ) as ex,
     ):
-        for done in ex.map((result_name(t.route.route_id, t.repetition), t) for t in tasks):
+        for done in ex.map(by_name.items()):
             yield done.result
 
 

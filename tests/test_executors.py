@@ -73,6 +73,23 @@ def test_a_task_whose_worker_always_dies_stops_the_run_naming_it():
     assert time.monotonic() - t0 < 60
 
 
+def test_with_on_lost_a_task_whose_worker_always_dies_is_a_result_and_the_others_go_on(tmp_path):
+    """drive eval's crashed route (SUMO killed its worker each time): recorded, the rest driven."""
+    (tmp_path / "never").touch()
+    tasks = [(str(i), (i, None if i == 2 else str(tmp_path / "never"))) for i in range(5)]
+    lost = []
+
+    def on_lost(key, message):
+        lost.append(key)
+        return f"lost: {message}"
+
+    with executors.make("process", dies, workers=2, retries=1, on_lost=on_lost) as ex:
+        done = {d.key: d for d in ex.map(tasks)}
+    assert lost == ["2"] and done["2"].attempts == 2
+    assert done["2"].result.startswith("lost: task 2: its worker was killed by SIGKILL, on each")
+    assert {k: d.result for k, d in done.items() if k != "2"} == {"0": 0, "1": 1, "3": 9, "4": 16}
+
+
 def test_a_stalled_task_hits_the_watchdog_and_is_named():
     t0 = time.monotonic()
     with pytest.raises(executors.Stalled, match=r"^task 3 made no progress for 1 s") as e:

@@ -157,6 +157,9 @@ class Executor:
         stall_s: watchdog limit in seconds; None: adaptive (STALL_FACTOR, STALL_FLOOR_S).
         max_tasks_per_worker: tasks before a worker process is replaced; None: never.
         noun: what a task is, in messages ("episode", "shard", "route").
+        on_lost: `on_lost(key, message)` is the result of a task whose worker died on every
+            attempt, yielded as its Done (drive eval records such a route as failed and goes
+            on, as the leaderboard records a crashed route); None: TaskLost stops the run.
     """
 
     def __init__(
@@ -168,6 +171,7 @@ class Executor:
         stall_s: float | None = None,
         max_tasks_per_worker: int | None = MAX_TASKS_PER_WORKER,
         noun: str = "task",
+        on_lost: Callable[[str, str], object] | None = None,
     ):
         if workers < 1:
             raise UserError(f"workers must be at least 1, got {workers}")
@@ -177,6 +181,8 @@ class Executor:
         self.stall_s = stall_s
         self.max_tasks_per_worker = max_tasks_per_worker
         self.noun = noun
+        self.on_lost = on_lost
+        self._lost: list[Done] = []  # tasks given up with on_lost, to yield as done
         self._payloads: dict[str, object] = {}  # submitted and not finished
         self._attempts: dict[str, int] = {}
         self._last_seen: dict[str, float] = {}  # running task -> monotonic time of its last event
@@ -205,6 +211,7 @@ class Executor:
         if not self._payloads:
             return []
         events = self._poll(timeout_s)
+        events, self._lost = events + self._lost, []
         now = time.monotonic()
         for ev in events:
             self._last_event = now
@@ -264,11 +271,15 @@ class Executor:
                 file=sys.stderr,
             )
             return True
-        raise TaskLost(
+        message = (
             f"{self.noun} {key}: its worker {why}, on each of {attempts} attempts "
-            "(killed, out of memory, or a crash)",
-            (key,),
+            "(killed, out of memory, or a crash)"
         )
+        if self.on_lost is None:
+            raise TaskLost(message, (key,))
+        print(message, file=sys.stderr)
+        self._lost.append(Done(key, self.on_lost(key, message), "", 0.0, attempts))
+        return False
 
     def stall_limit_s(self) -> float:
         """The watchdog's current limit, in seconds."""
