@@ -224,19 +224,29 @@ def run_episode(
         stats = dict(world.stats)
     if progress is not None and len(rows) > reported:
         progress(len(rows) - reported)
+    table = episode_table(rows, sensors, network_sha256(net), spec.seed, spec.episode_id)
+    stats["timing"] = {k: round(v, 4) for k, v in timer.s.items()}
+    stats["frames"] = len(rows)
+    return EpisodeResult(table=table, end_reason=end_reason, stats=stats)
+
+
+def episode_table(
+    rows: list[dict], sensors: Sensors, net_sha256: str, seed: int, episode_id: str
+) -> pa.Table:
+    """An episode's rows (numbered here 0, 1, ... as `frame`) as a validated shard table with
+    the file metadata: generator version, sensor config, network and seed. What `datagen
+    build` and `drive collect` write."""
     for i, row in enumerate(rows):
         row["frame"] = i
     meta = schemas.file_metadata(
         generator_version=generator_version(),
         config=sensors.to_dict(),
-        network_sha256=network_sha256(net),
-        seed=spec.seed,
+        network_sha256=net_sha256,
+        seed=seed,
     )
     table = pa.Table.from_pylist(rows, schema=schemas.schema(meta))
-    schemas.validate(table, where=spec.episode_id)
-    stats["timing"] = {k: round(v, 4) for k, v in timer.s.items()}
-    stats["frames"] = len(rows)
-    return EpisodeResult(table=table, end_reason=end_reason, stats=stats)
+    schemas.validate(table, where=episode_id)
+    return table
 
 
 def _process(

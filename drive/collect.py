@@ -115,11 +115,15 @@ def policy_episode(
 ):
     """Drive one planned episode (datagen.dataset.plan.Episode) with `policy` and return its
     datagen.episode.EpisodeResult (the build's runner: datagen.dataset.build.episode_task)."""
-    import pyarrow as pa
 
-    import schemas
     from datagen import labels
-    from datagen.episode import EpisodeResult, Sensors, encode_sensors, episode_rng
+    from datagen.episode import (
+        EpisodeResult,
+        Sensors,
+        encode_sensors,
+        episode_rng,
+        episode_table,
+    )
     from datagen.sensors.config import HISTORY
     from datagen.sensors.scene import load_static_scene
     from datagen.world import EgoCommand, World, WorldConfig
@@ -204,25 +208,10 @@ def policy_episode(
             k += 1
         end_reason = world.ended or ("off_network" if off_network else None)
         stats = dict(world.stats)
-    rows = rows[: episode.n_frames]
-    for i, row in enumerate(rows):
-        row["frame"] = i
     stats.update(plans=k // steps_per_plan + 1, expert_plans=int(expert_plans))
-    meta = schemas.file_metadata(
-        generator_version=_generator_version(),
-        config=sensors.to_dict(),
-        network_sha256=network_sha256(net),
-        seed=episode.seed,
-    )
-    table = pa.Table.from_pylist(rows, schema=schemas.schema(meta))
-    schemas.validate(table, where=episode.episode_id)
+    rows = rows[: episode.n_frames]
+    table = episode_table(rows, sensors, network_sha256(net), episode.seed, episode.episode_id)
     return EpisodeResult(table=table, end_reason=end_reason, stats=stats)
-
-
-def _generator_version() -> str:
-    from datagen.episode import generator_version
-
-    return generator_version()
 
 
 def _row(held, future, episode, sense, labels) -> list[dict]:
