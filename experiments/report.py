@@ -126,6 +126,20 @@ def paired(a: dict[int, list[dict]], b: dict[int, list[dict]]):
     return (*verdicts.hierarchical(diff), n, verdicts.enough(diff))
 
 
+def paired_against_full(held: dict[str, dict[int, list[dict]]], skip: tuple[str, ...] = ()):
+    """(variant, mean, lo, hi, n, enough) of DS(All tasks) - DS(variant) for every variant but
+    "full" and `skip` that shares routes and seeds with it (`paired`)."""
+    full = held.get("full")
+    if full is None:
+        return
+    for v, seeds in held.items():
+        if v == "full" or v in skip:
+            continue
+        got = paired(full, seeds)
+        if got is not None:
+            yield (v, *got)
+
+
 def creeps_per_route(docs: dict[str, list[dict]]) -> dict[str, float]:
     """Per variant, the mean number of creeps (drive.controller.Creep) per route."""
     return {v: sum(d.get("creeps", 0) for d in ds) / len(ds) for v, ds in docs.items()}
@@ -168,14 +182,7 @@ def _paired_table(held: dict[str, dict[int, list[dict]]]) -> list[str]:
         "| variant | routes x seeds | DS(All tasks) - DS(variant) | 95 % interval | verdict |",
         "|---|---|---|---|---|",
     ]
-    full = held.get("full")
-    for v, seeds in held.items():
-        if v == "full" or full is None:
-            continue
-        got = paired(full, seeds)
-        if got is None:
-            continue
-        mean, lo, hi, n, ok = got
+    for v, mean, lo, hi, n, ok in paired_against_full(held):
         lines.append(
             f"| {LABELS[v]} | {n} | {mean:+.2f} | {lo:+.2f} - {hi:+.2f} | "
             f"{verdicts.verdict(lo, hi, ok)} |"
@@ -285,13 +292,7 @@ def _claims(held: dict[str, dict[int, list[dict]]], swap: dict, analyses: dict) 
     module docstring's rule)."""
     out = []
     full = held.get("full")
-    for v, seeds in held.items():
-        if v in ("full", "ours") or full is None:
-            continue
-        got = paired(full, seeds)
-        if got is None:
-            continue
-        mean, lo, hi, n, ok = got
+    for v, mean, lo, hi, n, ok in paired_against_full(held, skip=("ours",)):
         out.append(
             f"- *All tasks drive better than {LABELS[v]}* (Table III, held-out DS, paired over "
             f"{n} routes x seeds): {verdicts.verdict(lo, hi, ok)} (difference {mean:+.2f}, "
