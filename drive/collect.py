@@ -117,23 +117,18 @@ def policy_episode(
     datagen.episode.EpisodeResult (the build's runner: datagen.dataset.build.episode_task)."""
 
     from datagen import labels
-    from datagen.episode import (
-        EpisodeResult,
-        Sensors,
-        encode_sensors,
-        episode_rng,
-        episode_table,
-    )
-    from datagen.sensors.config import HISTORY
+    from datagen.episode import EpisodeResult, Sensors, episode_rng, episode_table
     from datagen.sensors.scene import load_static_scene
     from datagen.world import EgoCommand, World, WorldConfig
     from datagen.world.towns import network_sha256
     from drive.controller import Controller, Plan, VehicleState, bicycle_step
     from drive.policy import ModelPolicy
+    from drive.sim import SensorStream
 
     net = Path(nets[episode.town])
     static = load_static_scene(net)
     sense = Sensors(static, sensors, episode.weather, episode_rng(episode.seed))
+    stream = SensorStream(sense, sensors.jpeg_quality)
     mix = np.random.default_rng(np.random.SeedSequence([episode.seed, 0xDA6]))
     perturb = Perturbation(
         noise, np.random.default_rng(np.random.SeedSequence([episode.seed, 0xDA7]))
@@ -154,7 +149,6 @@ def policy_episode(
         ego_driver="external",
     )
     steps_per_plan = round(PLAN_PERIOD_S / STEP_S)
-    sweeps: deque = deque(maxlen=HISTORY + 1)
     held: deque = deque()  # frames waiting for the boxes' future (t+0.5 s, t+1.0 s)
     rows: list[dict] = []
     expert_plans = off_network = 0
@@ -166,10 +160,8 @@ def policy_episode(
         k = 0
         while len(rows) < episode.n_frames:
             if k % steps_per_plan == 0:
-                scene = sense.scene(frame)
-                sweeps.appendleft(sense.sweep(scene, frame))
-                hist = list(sweeps) + [sweeps[-1]] * (sweeps.maxlen - len(sweeps))
-                encoded = encode_sensors(sense, scene, frame, hist)
+                image, lidar_bev, ground_t = stream.encode(frame)
+                encoded = {"image": image, "lidar_bev": lidar_bev, "lidar_ground_t": ground_t}
                 expert = world.expert_plan()
                 label = None if expert is None else frame.ego.pose.ego_from_world(expert[0])
                 off_network = 0 if label is not None else off_network + 1
@@ -177,17 +169,15 @@ def policy_episode(
                     break
                 waypoints = label
                 if model is not None and not (label is not None and mix.random() < beta):
-                    waypoints = model.plan(
-                        frame, encoded["image"], encoded["lidar_bev"], encoded["lidar_ground_t"]
-                    )
+                    waypoints = model.plan(frame, image, lidar_bev, ground_t)
                 else:
                     expert_plans += label is not None
                 if waypoints is not None:
                     waypoints = perturb.plan(waypoints)
                     plan = Plan.from_ego(frame.time_s, frame.ego.pose, waypoints)
                 reason = expert[1].reason if expert is not None else "none"
-                full = len(sweeps) > HISTORY
-                held.append((frame, encoded, label, reason, sweeps[0].actor_hits, full))
+                hits = stream.last_sweep.actor_hits
+                held.append((frame, encoded, label, reason, hits, stream.full))
                 if len(held) > 2:  # its two future states are here: the boxes can be labelled
                     row = _row(held.popleft(), [h[0] for h in held], episode, sense, labels)
                     rows += row

@@ -97,21 +97,32 @@ class ModelPolicy:
     ) -> np.ndarray:
         """(4, 2) waypoints, ego frame, m, from one instant's encoded sensors (`ground_png`, the
         current sweep's ground channel, is read by a single-frame LiDAR model only)."""
-        from training.decode import model_inputs
         from training.device import autocast
+        from training.model import INPUTS
 
         torch = self.torch
-        ground = ground_png if self.model.cfg.single_frame_lidar else None
-        image, lidar = model_inputs(image_jpeg, lidar_png, ground)
-        pose = frame.ego.pose
-        tp = pose.ego_from_world(np.array([frame.target_point_xy_m]))[0]
-        dev = self.device
-        speed = torch.tensor([frame.ego.speed_mps], dtype=torch.float32, device=dev)
-        with torch.no_grad(), autocast(dev):
-            waypoints = self.model.plan(  # (1, 4, 2); the paper's model or ours alike
-                torch.from_numpy(image)[None].to(dev),
-                torch.from_numpy(lidar)[None].to(dev),
-                speed,
-                torch.tensor(tp[None], dtype=torch.float32, device=dev),
-            )
+        single = self.model.cfg.single_frame_lidar
+        x = sensor_inputs(frame, image_jpeg, lidar_png, ground_png if single else None)
+        batch = {k: torch.from_numpy(np.asarray(v))[None].to(self.device) for k, v in x.items()}
+        with torch.no_grad(), autocast(self.device):
+            waypoints = self.model.plan(*(batch[k] for k in INPUTS))  # (1, 4, 2)
         return waypoints[0].float().cpu().numpy().astype(np.float64)
+
+
+def sensor_inputs(
+    frame: FrameState, image_jpeg: bytes, lidar_png: bytes, ground_png: bytes | None = None
+) -> dict[str, np.ndarray]:
+    """What the sensor model reads at one instant, as the loader's sample holds it
+    (training/data.py `_sample`): image (3, 256, 256) uint8 and lidar (4 or, given
+    `ground_png`, 2, 256, 256) uint8 decoded by the trainer's own `model_inputs`; speed ()
+    float32, m/s; target_point (2,) float32, m, the ego frame now."""
+    from training.decode import model_inputs
+
+    image, lidar = model_inputs(image_jpeg, lidar_png, ground_png)
+    tp = frame.ego.pose.ego_from_world(np.array([frame.target_point_xy_m]))[0]
+    return {
+        "image": image,
+        "lidar": lidar,
+        "speed": np.float32(frame.ego.speed_mps),
+        "target_point": tp.astype(np.float32),
+    }

@@ -104,7 +104,13 @@ class DrivenWorld:
 class SensorStream:
     """The sensors of one drive at consecutive 2 Hz instants, encoded as the shards hold them
     (datagen.episode.Sensors; the LiDAR BEV history t, t-1, t-2, its oldest sweep standing in
-    for missing ones until it is full), so a model sees what it was trained on."""
+    for missing ones until it is full), so a model sees what it was trained on.
+
+    A build sweeps its first HISTORY instants but renders no camera and counts no BEV for them
+    (they make no row), so its camera stream (rain streaks) and pose-noise stream start at the
+    first full history. Here those instants are encoded with copies of both streams, so from
+    the first full history on the same states give a build's bytes in every weather
+    (tests/test_drive_parity.py)."""
 
     def __init__(self, sensors, jpeg_quality: int):
         from datagen.sensors.config import HISTORY
@@ -113,6 +119,11 @@ class SensorStream:
         self.jpeg_quality = jpeg_quality
         self._sweeps: deque = deque(maxlen=HISTORY + 1)
         self.last_sweep = None  # datagen.sensors.lidar.Sweep of the last instant encoded or swept
+
+    @property
+    def full(self) -> bool:
+        """The last instant encoded had a full LiDAR history (a build would make a row of it)."""
+        return len(self._sweeps) == self._sweeps.maxlen
 
     def sweep(self, frame: FrameState):
         """Only the LiDAR sweep of `frame` (no camera, no encoding; for the creep's safety box
@@ -123,12 +134,23 @@ class SensorStream:
     def encode(self, frame: FrameState) -> tuple[bytes, bytes, bytes]:
         """(camera JPEG, LiDAR BEV PNG, current ground-hits PNG) of `frame`; call once per
         instant, in order."""
+        import copy
+
         from datagen.episode import encode_sensors
 
         sense = self.sensors
         scene = sense.scene(frame)
         self.last_sweep = sense.sweep(scene, frame)
         self._sweeps.appendleft(self.last_sweep)  # [t, t-1, t-2]
-        hist = list(self._sweeps) + [self._sweeps[-1]] * (self._sweeps.maxlen - len(self._sweeps))
-        e = encode_sensors(sense, scene, frame, hist)
+        missing = self._sweeps.maxlen - len(self._sweeps)
+        hist = list(self._sweeps) + [self._sweeps[-1]] * missing
+        if not missing:
+            e = encode_sensors(sense, scene, frame, hist)
+        else:  # an instant a build makes no row of: leave its camera and pose streams as is
+            streams = sense.camera_rng, sense.pose_rng
+            sense.camera_rng, sense.pose_rng = (copy.deepcopy(g) for g in streams)
+            try:
+                e = encode_sensors(sense, scene, frame, hist)
+            finally:
+                sense.camera_rng, sense.pose_rng = streams
         return e["image"], e["lidar_bev"], e["lidar_ground_t"]
