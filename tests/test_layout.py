@@ -54,7 +54,11 @@ MODULES = _modules()
 
 
 def _imports(path: Path, module: str) -> set[str]:
-    """Every name `path` imports (at any depth: a lazy import inside a function counts)."""
+    """Every name `path` imports (at any depth: a lazy import inside a function counts).
+
+    `from P import n` imports P itself as well as n: n is read from P's namespace, so when P is
+    a package it goes through P/__init__.py and everything that imports, even where n is a
+    submodule. `from P.m import n` and `import P.m` name the module m instead."""
     package = module if path.name == "__init__.py" else module.rpartition(".")[0]
     found = set()
     for node in ast.walk(ast.parse(path.read_text())):
@@ -65,6 +69,7 @@ def _imports(path: Path, module: str) -> set[str]:
             if node.level:
                 parent = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
                 base = f"{parent}.{base}" if base else parent
+            found.add(base)
             found.update(f"{base}.{a.name}" for a in node.names)  # a submodule, or in `base`
     return found
 
@@ -128,6 +133,27 @@ def test_the_import_graph_has_no_cycle():
 
 def test_the_cycle_finder_finds_a_cycle():
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def test_a_from_import_through_a_package_imports_its_init(tmp_path):
+    source = tmp_path / "planning.py"
+    source.write_text("from datagen.world import perception\nimport datagen.world.route\n")
+    assert _imports(source, "datagen.world.planning") == {
+        "datagen.world",  # the package's __init__, which imports every module of it
+        "datagen.world.perception",
+        "datagen.world.route",
+    }
+
+
+PACKAGES_IN_TREE = sorted(m for m, path in MODULES.items() if path.name == "__init__.py")
+
+
+@pytest.mark.parametrize("package", PACKAGES_IN_TREE)
+def test_no_package_imports_its_own_modules_in_a_circle(package):
+    """Among a package's own modules and its __init__ (e.g. datagen/world/*.py), a sibling
+    imported as `from datagen.world import perception` counts as importing the __init__ too."""
+    own = {m for m in MODULES if m == package or m.rpartition(".")[0] == package}
+    assert _cycles({m: GRAPH[m] & own for m in own}) == []
 
 
 def test_data_flows_one_way_between_the_packages():

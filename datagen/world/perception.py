@@ -12,7 +12,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import shapely
 
-from datagen.world import expert
+import datagen.world.expert as expert
 from datagen.world.fleet import EGO_DIMS_M, PED_TYPE, dims
 from datagen.world.route import Path, RoadNet, first_intersection, project, project_many
 from datagen.world.sumo import AgentReading, Leader, centre_xy

@@ -17,7 +17,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from datagen.world import expert, perception, route
+import datagen.world.expert as expert
+import datagen.world.perception as perception
+import datagen.world.route as route
 from datagen.world.behaviour import EGO_DECEL_SLACK
 from datagen.world.fleet import EGO_DIMS_M
 from datagen.world.route import PATH_LOOKAHEAD_M

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from datagen.world import expert, perception, route
+import datagen.world.expert as expert
+import datagen.world.perception as perception
+import datagen.world.route as route
 from datagen.world.sumo import Network, Snapshot
 
 

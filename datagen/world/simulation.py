@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from datagen.world import perception, route
+import datagen.world.perception as perception
+import datagen.world.route as route
 from datagen.world.behaviour import Profile
 from datagen.world.config import WorldConfig
 from datagen.world.fleet import EGO_ID

@@ -72,9 +72,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import datagen.world.expert as expert
+import datagen.world.perception as perception
+import datagen.world.route as route
 from datagen.errors import UserError
 from datagen.state import AgentState, FrameState
-from datagen.world import expert, perception, route
 from datagen.world.behaviour import EGO_DECEL_SLACK, PROFILES, Profile
 from datagen.world.config import EGO_DRIVERS, WorldConfig
 from datagen.world.external import EgoCommand, ExternalDriver
