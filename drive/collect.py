@@ -169,7 +169,11 @@ def policy_episode(
                     break
                 waypoints = label
                 if model is not None and not (label is not None and mix.random() < beta):
-                    waypoints = model.plan(frame, image, lidar_bev, ground_t)
+                    waypoints = (
+                        model.plan(frame, image, lidar_bev, ground_t)
+                        if model.needs_sensors
+                        else model.plan_privileged(frame, static.label_map)
+                    )
                 else:
                     expert_plans += label is not None
                 if waypoints is not None:

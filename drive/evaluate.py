@@ -150,7 +150,7 @@ def drive_route(
         return SensorStream(sense, sensor_cfg.jpeg_quality)
 
     # encoded at every plan for a model or a video; else started only when the creep needs them
-    encode = model is not None or task.record
+    encode = (model is not None and model.needs_sensors) or task.record
     sensors = sensor_stream() if encode else None
     recorder = None
     if task.record:
@@ -210,6 +210,8 @@ def drive_route(
                 t = time.perf_counter()
                 if planner is not None:
                     waypoints = planner(frame)
+                elif model is not None and not model.needs_sensors:
+                    waypoints = model.plan_privileged(frame, static.label_map)
                 elif model is not None:
                     waypoints = model.plan(frame, image_jpeg, lidar_png, ground_png)
                 elif spec.kind == "constant":

@@ -6,7 +6,9 @@ Three seams are pinned, each with real SUMO on a built-in town:
 - sensors: the same 2 Hz states through the build's `_process` and through drive's
   `SensorStream` give the same camera, LiDAR and ground bytes, in clear weather and in rain
   (whose streaks are random draws), and the trainer's sample of the build's row equals the
-  sensor model's input made in closed loop (`drive.policy.sensor_inputs`);
+  sensor model's input made in closed loop (`drive.policy.sensor_inputs`), and the
+  privileged planner's input made from the row equals the one made from the world's ground
+  truth (`drive.policy.privileged_inputs`);
 - the world: an externally placed ego replaying the expert's own drive, step by step, reads
   back the expert's states (pose, speed, target point, command, signal and stop sign);
 - labels: the expert's plan from its own state (`World.expert_plan`, the label of on-policy
@@ -33,10 +35,11 @@ from datagen.episode import (
 from datagen.sensors.config import HISTORY, SensorConfig
 from datagen.sensors.scene import load_static_scene
 from datagen.world.towns import network_sha256, town_net_path
-from drive.policy import sensor_inputs
+from drive.policy import privileged_inputs, sensor_inputs
 from drive.routes import generate
 from drive.sim import DrivenWorld, SensorStream
 from training.data import _row_arrays, _sample
+from training.privileged import table_samples
 
 STEPS_PER_FRAME = 5  # 0.1 s steps per 2 Hz frame
 
@@ -85,6 +88,7 @@ def test_drive_feeds_the_model_the_builds_bytes_and_the_trainers_sample(town, we
     encoded = [stream.encode(s) for s in states]
     table = episode_table(rows, cfg, network_sha256(net), route.seed, "gs-0-0")
     samples = _row_arrays(table.drop_columns(["lidar_ground_t"]))  # what the loader reads
+    privileged = table_samples(table)
     for i, row in enumerate(rows):
         k = i + HISTORY  # the build's first row is the first state with a full history
         image, lidar, ground = encoded[k]
@@ -96,6 +100,12 @@ def test_drive_feeds_the_model_the_builds_bytes_and_the_trainers_sample(town, we
         assert sample["speed"] == x["speed"]
         # the shard stores the target point as float32 after the same transform
         np.testing.assert_allclose(sample["target_point"], x["target_point"], atol=1e-5)
+        # the privileged planner's input from the build's labels and from the world's truth
+        closed = privileged_inputs(states[k], static.label_map)
+        for key, value in privileged[i].items():
+            if key in closed:
+                assert np.array_equal(value, closed[key]), (i, key)
+    assert sum(p["grid"][2].any() for p in privileged) > 0  # vehicles were rasterised
 
 
 @pytest.mark.slow

@@ -121,9 +121,11 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--arch",
-        choices=ARCHITECTURES,
+        choices=(*ARCHITECTURES, "privileged"),
         help="paper: the paper's II-DSU (Sec. III), nothing of ours (default); ours: the "
-        "paper's plus every addition below",
+        "paper's plus every addition below; privileged: a small CNN planning from the labels "
+        "(ground-truth BEV map, boxes, lights; training/privileged.py), driven by `drive eval` "
+        "from the world's ground truth",
     )
     p.add_argument("--out", metavar="DIR", help="run directory")
     p.add_argument(
@@ -392,6 +394,12 @@ def _configs(args) -> tuple[ModelConfig, TrainConfig]:
 def _run_fit(args) -> int:
     from training.fit import fit
 
+    if args.arch == "privileged":  # its own loop and flags (training/privileged.py)
+        from training.privileged import run_fit
+
+        given = sorted(k for k in {*TRAIN_FLAGS, *MODEL_FLAGS} if getattr(args, k) is not None)
+        _check_unfinished_build(Path(args.shards or "."), args.allow_unfinished)
+        return run_fit(args, given)
     if args.resume and args.force:
         raise UserError("--resume continues the run in OUT, --force replaces it: give one")
     model_cfg, train_cfg = _configs(args)
