@@ -84,7 +84,19 @@ def main() -> None:
     p.add_argument("--epochs", type=int, default=6)
     p.add_argument("--val-towns", default="downtown")
     p.add_argument("--arch", choices=("paper", "ours"), default="paper", help="train fit --arch")
-    p.add_argument("--seeds", default="0", help="training seeds, comma-separated")
+    p.add_argument("--seeds", default="0", help="sensor-model seeds, comma-separated ('': none)")
+    p.add_argument(
+        "--privileged-seeds",
+        default="",
+        help="privileged planner seeds (train fit --arch privileged), comma-separated ('': none)",
+    )
+    p.add_argument(
+        "--privileged-arg", action="append", default=[], help="extra privileged train fit flag"
+    )
+    p.add_argument(
+        "--privileged-name", default="privileged", help="its rows' and run directories' name"
+    )
+    p.add_argument("--privileged-epochs", type=int, default=12)
     p.add_argument("--dagger-rounds", type=int, default=1)
     p.add_argument("--dagger-frames", type=int, default=4000)
     p.add_argument("--dagger-epochs", type=int, default=2)
@@ -96,7 +108,8 @@ def main() -> None:
     args = p.parse_args()
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
-    seeds = [int(s) for s in args.seeds.split(",")]
+    seeds = [int(s) for s in args.seeds.split(",") if s]
+    privileged_seeds = [int(s) for s in args.privileged_seeds.split(",") if s]
     wall: dict[str, float] = {}
 
     data = args.data or out / "data"
@@ -164,6 +177,19 @@ def main() -> None:
             ckpt = tuned / "last.pt"
         models[seed] = ckpt
 
+    planners: dict[int, Path] = {}
+    for seed in privileged_seeds:
+        fit_dir = out / f"{args.privileged_name}-s{seed}"
+        if not (fit_dir / "done").exists():
+            wall[f"{args.privileged_name}-s{seed}"] = run(
+                [BIN / "train", "fit", "--arch", "privileged", "--shards", ",".join(base),
+                 "--epochs", args.privileged_epochs, "--val-towns", args.val_towns, "--seed",
+                 seed, "--out", fit_dir, "--force", *args.privileged_arg],
+                out / f"{args.privileged_name}-s{seed}.log",
+            )  # fmt: skip
+            (fit_dir / "done").write_text("")
+        planners[seed] = fit_dir / "last.pt"
+
     sets = {}
     for name in args.routes.split(","):
         if name == "dev":
@@ -178,6 +204,10 @@ def main() -> None:
     for set_name, routes in sets.items():
         policies = [("expert", "expert", []), ("expert-plan", "expert-plan", ["--no-creep"])]
         policies.append(("constant", "constant", []))
+        for seed, ckpt in planners.items():
+            policies.append(
+                (f"{args.privileged_name}-s{seed} no creep", f"ckpt:{ckpt}", ["--no-creep"])
+            )
         for seed, ckpt in models.items():
             policies.append((f"model-s{seed}", f"ckpt:{ckpt}", []))
             policies.append((f"model-s{seed} no creep", f"ckpt:{ckpt}", ["--no-creep"]))
@@ -192,11 +222,13 @@ def main() -> None:
                 )  # fmt: skip
             rows[name] = json.loads((ev / "summary.json").read_text())
         results["sets"][set_name] = rows
-        print(table(set_name, rows, seeds))
+        print(table(set_name, rows, {"model": seeds, args.privileged_name: privileged_seeds}))
     (out / "check.json").write_text(json.dumps(results, indent=1, sort_keys=True) + "\n")
 
 
-def table(set_name: str, rows: dict[str, dict], seeds: list[int]) -> str:
+def table(set_name: str, rows: dict[str, dict], seeds: dict[str, list[int]]) -> str:
+    """The markdown table of `rows` (name -> summary.json), then per kind of trained policy
+    (`seeds`: name -> its seeds) its DS as a share of the expert's, mean and spread."""
     head = f"| {set_name} | DS | RC | IS | {SHORT} per km | stuck s | creeps |"
     lines = [head, "|" + "---|" * 7]
     for name, s in rows.items():
@@ -207,13 +239,18 @@ def table(set_name: str, rows: dict[str, dict], seeds: list[int]) -> str:
             f"{s.get('creeps', 0)} |"
         )
     expert = rows["expert"]["ds"]
-    for creep in ("", " no creep"):
-        ds = [rows[f"model-s{k}{creep}"]["ds"] for k in seeds]
-        ratio = [d / max(expert, 1e-9) for d in ds]
-        lines.append(
-            f"\nmodel{creep or ' with creep'}: DS {np.mean(ds):.1f} (seeds {', '.join(f'{d:.1f}' for d in ds)}; "
-            f"spread {np.ptp(ds):.1f}), {np.mean(ratio):.2f}x the expert's {expert:.1f}"
-        )
+    for kind, kind_seeds in seeds.items():
+        for creep in ("", " no creep"):
+            names = [f"{kind}-s{k}{creep}" for k in kind_seeds]
+            if not names or any(n not in rows for n in names):
+                continue
+            ds = [rows[n]["ds"] for n in names]
+            ratio = [d / max(expert, 1e-9) for d in ds]
+            lines.append(
+                f"\n{kind}{creep or ' with creep'}: DS {np.mean(ds):.1f} (seeds "
+                f"{', '.join(f'{d:.1f}' for d in ds)}; spread {np.ptp(ds):.1f}), "
+                f"{np.mean(ratio):.2f}x the expert's {expert:.1f}"
+            )
     return "\n".join(lines)
 
 

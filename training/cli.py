@@ -166,6 +166,18 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         "architecture)",
     )
     p.add_argument(
+        "--planner-output",
+        choices=("waypoints", "path_speed"),
+        help="--arch privileged: the paper's GRU waypoints (default) or TransFuser++'s path and "
+        "target-speed classes (training/pathspeed.py)",
+    )
+    p.add_argument(
+        "--go-weight",
+        type=_positive_float,
+        metavar="W",
+        help="--arch privileged: weight of the stand -> go frames in the loss (default 1)",
+    )
+    p.add_argument(
         "--ema",
         type=_fraction,
         metavar="D",
@@ -400,6 +412,8 @@ def _run_fit(args) -> int:
         given = sorted(k for k in {*TRAIN_FLAGS, *MODEL_FLAGS} if getattr(args, k) is not None)
         _check_unfinished_build(Path(args.shards or "."), args.allow_unfinished)
         return run_fit(args, given)
+    if args.go_weight is not None or args.planner_output is not None:
+        raise UserError("--go-weight, --planner-output: options of --arch privileged only")
     if args.resume and args.force:
         raise UserError("--resume continues the run in OUT, --force replaces it: give one")
     model_cfg, train_cfg = _configs(args)

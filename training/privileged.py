@@ -26,7 +26,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -38,6 +38,7 @@ from torch import nn
 
 from schemas import COMMANDS, TRAFFIC_LIGHTS
 from schemas.bev import BEV_SIZE_PX, ego_to_bev_px
+from training import pathspeed
 from training.errors import UserError
 from training.heads import PlanningHead
 
@@ -186,15 +187,23 @@ def scalars(s: Situation) -> np.ndarray:
     return v
 
 
+OUTPUTS = ("waypoints", "path_speed")
+"""waypoints: the paper's GRU, 4 timed waypoints; path_speed: TransFuser++'s path checkpoints
+and target-speed classes (training/pathspeed.py), turned into 4 timed waypoints to drive."""
+
+
 @dataclass(frozen=True)
 class PrivilegedConfig:
     """The planner's size. width: channels of the first conv (doubling twice, down to 4x4);
-    hidden: the feature the GRU head reads; speed: the head also reads the speed (as ours)."""
+    hidden: the feature the head reads; output: OUTPUTS; speed: the planner reads the ego speed (in its
+    scalars and beside the GRU head's feature, as ours); False: it never does (the "inertia"
+    of Codevilla et al. 2019: a planner that reads its speed learns that standing stays)."""
 
     width: int = 32
     hidden: int = 256
     speed: bool = True
     n_waypoints: int = 4
+    output: str = "waypoints"  # or "path_speed": TF++'s path and speed classes (pathspeed.py)
     arch: str = ARCH
 
     def to_dict(self) -> dict:
@@ -229,21 +238,43 @@ class PrivilegedPlanner(nn.Module):
         )
         self.embed = nn.Sequential(nn.Linear(len(SCALARS), 64), nn.ReLU(inplace=True))
         self.join = nn.Sequential(nn.Linear(4 * w * 16 + 64, cfg.hidden), nn.ReLU(inplace=True))
-        self.head = PlanningHead(cfg.hidden, n_waypoints=cfg.n_waypoints, speed=cfg.speed)
+        if cfg.output not in OUTPUTS:
+            raise ValueError(f"output {cfg.output!r}: expected one of {', '.join(OUTPUTS)}")
+        if cfg.output == "path_speed":
+            self.head = pathspeed.PathSpeedHead(cfg.hidden)
+        else:
+            self.head = PlanningHead(cfg.hidden, n_waypoints=cfg.n_waypoints, speed=cfg.speed)
 
     def forward(
         self, grid: torch.Tensor, scalar: torch.Tensor, target_point: torch.Tensor,
         speed: torch.Tensor,
-    ) -> torch.Tensor:  # fmt: skip
+    ) -> dict[str, torch.Tensor]:  # fmt: skip
         """grid (B, 8, 64, 64) uint8 or float, scalar (B, S), target_point (B, 2) m, speed (B,)
-        m/s -> waypoints (B, 4, 2) m, ego frame."""
+        m/s -> the head's outputs: {"waypoints": (B, 4, 2) m, ego frame} or pathspeed's."""
         x = self.encoder(grid.float()).flatten(1)
+        if not self.cfg.speed:
+            scalar = torch.cat([torch.zeros_like(scalar[:, :1]), scalar[:, 1:]], dim=1)
         f = self.join(torch.cat([x, self.embed(scalar)], dim=1))
-        return self.head(f[:, :, None, None], target_point, speed)
+        if self.cfg.output == "path_speed":
+            return self.head(f, target_point)
+        return {"waypoints": self.head(f[:, :, None, None], target_point, speed)}
+
+    def outputs(self, sample: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """The head's outputs for a batch of `inputs` dicts."""
+        return self(sample["grid"], sample["scalars"], sample["target_point"], sample["speed"])
 
     def plan(self, sample: dict[str, torch.Tensor]) -> torch.Tensor:
-        """Waypoints (B, 4, 2) from a batch of `inputs` dicts."""
-        return self(sample["grid"], sample["scalars"], sample["target_point"], sample["speed"])
+        """Waypoints (B, 4, 2) from a batch of `inputs` dicts (path_speed: turned into them)."""
+        out = self.outputs(sample)
+        return pathspeed.to_waypoints(out) if self.cfg.output == "path_speed" else out["waypoints"]
+
+    def loss(self, sample: dict[str, torch.Tensor]) -> torch.Tensor:
+        """(B,) per-frame training loss: L1 of the waypoints (summed over x, y, mean over
+        time), or pathspeed.loss."""
+        out = self.outputs(sample)
+        if self.cfg.output == "path_speed":
+            return pathspeed.loss(out, sample)
+        return (out["waypoints"] - sample["waypoints"]).abs().sum(2).mean(1)
 
 
 def inputs(bev_semantic: np.ndarray, agents: AgentBoxes, s: Situation) -> dict[str, np.ndarray]:
@@ -268,10 +299,43 @@ def read_samples(index) -> dict[str, np.ndarray]:
     parts: dict[int, dict] = {}
     for file, group in index.groupby("path", sort=False):
         table = pq.read_table(file, columns=list(COLUMNS))
-        table = table.take(_file_rows(file, group))
-        parts.update(zip(group.index, table_samples(table)))
+        rows = _file_rows(file, group)
+        paths, masks = path_labels(file)
+        for k, x in zip(group.index, table_samples(table.take(rows))):
+            parts[k] = x
+        for k, r in zip(group.index, rows):
+            parts[k] |= {"path": paths[r], "path_mask": masks[r]}
     rows = [parts[i] for i in index.index]
     return {k: np.stack([r[k] for r in rows]) for k in rows[0]} if rows else {}
+
+
+def path_labels(file: str) -> tuple[np.ndarray, np.ndarray]:
+    """Per row of a shard file, pathspeed.future_path of its episode's later frames (the ego's
+    own positions, in the frame the row's labels are in: the sensor rig's, `rig_shift_m` to
+    the ego's left and turned `rig_yaw_rad`, for a recovery frame) -> (N, P, 2), (N, P)."""
+    names = set(pq.read_schema(file).names)
+    cols = ["episode_id", "frame", "ego_x", "ego_y", "ego_yaw"]
+    cols += [c for c in ("rig_shift_m", "rig_yaw_rad") if c in names]
+    t = pq.read_table(file, columns=cols).to_pandas()
+    n = len(t)
+    paths = np.zeros((n, pathspeed.PATH_POINTS, 2), np.float32)
+    masks = np.zeros((n, pathspeed.PATH_POINTS), bool)
+    shift = t["rig_shift_m"].to_numpy(np.float64) if "rig_shift_m" in t else np.zeros(n)
+    turn = t["rig_yaw_rad"].to_numpy(np.float64) if "rig_yaw_rad" in t else np.zeros(n)
+    for _, ep in t.groupby("episode_id", sort=False):
+        ep = ep.sort_values("frame")
+        rows = ep.index.to_numpy()
+        xy = ep[["ego_x", "ego_y"]].to_numpy(np.float64)
+        yaw = ep["ego_yaw"].to_numpy(np.float64)
+        for k, r in enumerate(rows):
+            c, s_ = math.cos(yaw[k]), math.sin(yaw[k])
+            origin = xy[k] + shift[r] * np.array([-s_, c])
+            a = yaw[k] + turn[r]
+            d = xy[k + 1 :] - origin
+            ego = np.stack([d[:, 0] * math.cos(a) + d[:, 1] * math.sin(a),
+                            -d[:, 0] * math.sin(a) + d[:, 1] * math.cos(a)], 1)  # fmt: skip
+            paths[r], masks[r] = pathspeed.future_path(ego)
+    return paths, masks
 
 
 def _file_rows(file: str, group) -> np.ndarray:
@@ -333,6 +397,11 @@ class FitConfig:
     val_towns: tuple[str, ...] = ()
     val_fraction: float = 0.1
     seed: int = 0
+    # stand -> go frames (the ego stands, below 0.5 m/s, and the label moves over 1.5 m in 2 s)
+    # weigh this much in the loss; 1: as any frame
+    go_weight: float = 1.0
+    speed_input: bool = True  # PrivilegedConfig.speed
+    planner_output: str = "waypoints"  # PrivilegedConfig.output
     threads: int = 0
 
     def to_dict(self) -> dict:
@@ -340,7 +409,7 @@ class FitConfig:
 
 
 FIT_FLAGS = ("shards", "out", "epochs", "batch_size", "lr", "val_fraction", "val_towns", "seed",
-             "threads")  # fmt: skip
+             "threads", "go_weight", "speed_input", "planner_output")  # fmt: skip
 """`train fit` flags (argparse names) that set a FitConfig field of the same name."""
 
 CHECKPOINT = "last.pt"
@@ -351,11 +420,22 @@ def _ade(pred: torch.Tensor, wp: torch.Tensor) -> torch.Tensor:
     return (pred - wp).norm(dim=2).mean(1)
 
 
+def stand_to_go(data: dict[str, np.ndarray]) -> np.ndarray:
+    """(N,) bool: frames where the ego stands (below 0.5 m/s) and its label drives off (over
+    1.5 m in the 2 s)."""
+    return (data["speed"] < 0.5) & (np.linalg.norm(data["waypoints"][:, -1], axis=1) > 1.5)
+
+
+def go_weights(data: dict[str, np.ndarray], go_weight: float) -> np.ndarray:
+    """(N,) float32 loss weights: `go_weight` on stand_to_go frames, 1 elsewhere."""
+    return np.where(stand_to_go(data), go_weight, 1.0).astype(np.float32)
+
+
 def evaluate(model: PrivilegedPlanner, data: dict[str, np.ndarray], batch: int = 256) -> dict:
     """Open-loop figures on `data` (read_samples): ADE/FDE (m) over all frames and per expert
     reason, and of constant velocity beside them."""
     model.eval()
-    ade, fde = [], []
+    ade, fde, far = [], [], []
     with torch.no_grad():
         for s in range(0, len(data["speed"]), batch):
             b = {
@@ -367,10 +447,13 @@ def evaluate(model: PrivilegedPlanner, data: dict[str, np.ndarray], batch: int =
             err = (pred - b["waypoints"]).norm(dim=2)
             ade.append(err.mean(1))
             fde.append(err[:, -1])
+            far.append(pred[:, -1].norm(dim=1) > 1.5)
     ade_t, fde_t = torch.cat(ade).numpy(), torch.cat(fde).numpy()
+    moves = torch.cat(far).numpy()  # the plan moves over 1.5 m in 2 s
     times = np.array([0.5, 1.0, 1.5, 2.0])
     cv = np.stack([data["speed"][:, None] * times, np.zeros((len(ade_t), 4))], axis=2)
     cv_ade = np.linalg.norm(cv - data["waypoints"], axis=2).mean(1)
+    go = stand_to_go(data)
     reasons = data["expert_reason"]
     per = {str(r): float(ade_t[reasons == r].mean()) for r in np.unique(reasons)}
     return {
@@ -379,6 +462,9 @@ def evaluate(model: PrivilegedPlanner, data: dict[str, np.ndarray], batch: int =
         "fde_m": float(fde_t.mean()),
         "cv_ade_m": float(cv_ade.mean()),
         "ade_by_reason": per,
+        "stand_to_go_frames": int(go.sum()),
+        "stand_to_go_ade_m": float(ade_t[go].mean()) if go.any() else None,
+        "stand_to_go_moves": float(moves[go].mean()) if go.any() else None,
     }
 
 
@@ -409,7 +495,7 @@ def fit(
 
         sensor_config = shards_sensors(index)
     torch.manual_seed(cfg.seed)
-    model = PrivilegedPlanner(model_cfg)
+    model = PrivilegedPlanner(replace(model_cfg, speed=cfg.speed_input, output=cfg.planner_output))
     decay = [p for p in model.parameters() if p.ndim >= 2]
     rest = [p for p in model.parameters() if p.ndim < 2]
     opt = torch.optim.AdamW(
@@ -422,6 +508,8 @@ def fit(
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, cfg.lr, total_steps=total, pct_start=0.05)
     rng = np.random.default_rng(cfg.seed)
     tensors = {k: torch.from_numpy(v) for k, v in train_data.items() if k != "expert_reason"}
+    tensors["weight"] = torch.from_numpy(go_weights(train_data, cfg.go_weight))
+    tensors["speed_class"] = torch.from_numpy(pathspeed.speed_class(train_data["waypoints"]))
     (out / METRICS).write_text("")
     for epoch in range(1, cfg.epochs + 1):
         model.train()
@@ -430,7 +518,7 @@ def fit(
         for s in tqdm(range(steps_per_epoch), desc=f"epoch {epoch}", unit="step", leave=False):
             idx = torch.from_numpy(order[s * cfg.batch_size : (s + 1) * cfg.batch_size])
             b = {k: v[idx] for k, v in tensors.items()}
-            loss = (model.plan(b) - b["waypoints"]).abs().sum(2).mean()
+            loss = (model.loss(b) * b["weight"]).sum() / b["weight"].sum()
             opt.zero_grad(set_to_none=True)
             loss.backward()
             nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -449,7 +537,7 @@ def fit(
         ), flush=True)  # fmt: skip
         state = {
             "model": model.state_dict(),
-            "model_config": model_cfg.to_dict(),
+            "model_config": model.cfg.to_dict(),
             "train_config": cfg.to_dict(),
             "epoch": epoch,
             "metrics": line,
