@@ -25,6 +25,13 @@ mean and spread (sample standard deviation, and min-max), and OUT/summary.json h
 `--resume` keeps the seeds that finished (OUT/sN/learn.json) and continues an interrupted fit.
 `--compare JSON` adds a column from another `train eval` JSON (e.g. the same check on an older
 commit).
+
+Across sessions (whose run directories do not survive): `--record FILE` (a JSON kept in git,
+e.g. docs/results/learn-d41-paper.json) holds each finished seed's figures, its build's
+identity and the commit; a seed in it is not trained again, and the seeds' table waits until
+every seed of --seeds is in it (the build is rebuilt when needed: the same seed gives the same
+bytes). `--paired A.json B.json` prints B - A per figure and seed with the mean and a 95 %
+interval over the seeds both hold (Student's t).
 """
 
 from __future__ import annotations
@@ -280,8 +287,24 @@ def main() -> None:
     parser.add_argument("--eval-only", type=Path, metavar="RUN", help="print RUN's table only")
     parser.add_argument("--compare", type=Path, metavar="JSON", help="another eval JSON")
     parser.add_argument("--fit-arg", action="append", default=[], help="extra train fit flag")
+    parser.add_argument(
+        "--record", type=Path, metavar="JSON", help="finished seeds across sessions (kept in git)"
+    )
+    parser.add_argument(
+        "--paired", type=Path, nargs=2, metavar=("A", "B"), help="B - A of two --record files"
+    )
     args = parser.parse_args()
     towns = [t for t in args.val_towns.split(",") if t]
+    if args.paired:
+        a, b = (json.loads(p.read_text()) for p in args.paired)
+        text, _ = paired(a, b)
+        print(f"{b['arch']} - {a['arch']}, held out: {a['val_towns']}\n{text}")
+        return
+    recorded = load_record(args.record, args) if args.record else {}
+    todo = [s for s in args.seeds if str(s) not in recorded]
+    if args.record and not todo:
+        _summary(args, {int(s): e["figures"] for s, e in recorded.items() if int(s) in args.seeds})
+        return
 
     if args.eval_only is not None:
         _report(args, args.eval_only, None)
@@ -296,20 +319,102 @@ def main() -> None:
         if args.episode_seconds is not None:  # shorter episodes: more towns x weathers
             build += ["--episode-seconds", str(args.episode_seconds)]
         _run([*build, "--out", str(args.data), "--no-progress"])
-    per_seed = {}
-    for seed in args.seeds:
+    if any(e["build"] != build_identity(args.data) for e in recorded.values()):
+        sys.exit(f"{args.data}: another build than the one --record {args.record} holds")
+    per_seed = {int(s): e["figures"] for s, e in recorded.items() if int(s) in args.seeds}
+    for seed in todo:
         run = args.out / f"s{seed}"
         fit_s = train_seed(args, seed, run)
         print(f"\n=== seed {seed} ({args.arch}, held out: {args.val_towns}): {run}")
         per_seed[seed] = _report(args, run, fit_s)
+        if args.record:  # this seed is done for good, whatever stops the next one
+            recorded[str(seed)] = {"figures": per_seed[seed], "build": build_identity(args.data),
+                                   "commit": _commit()}  # fmt: skip
+            save_record(args.record, args, recorded)
     _print_baselines(args.data, towns)
+    _summary(args, per_seed)
+
+
+def _summary(args, per_seed: dict[int, dict]) -> None:
+    """The seeds' table and OUT/summary.json."""
     text, summary = seeds_table(per_seed)
     print(f"\n=== {args.arch}, {len(per_seed)} seed(s), held out: {args.val_towns}, {args.data}")
     print(text)
+    towns = [t for t in args.val_towns.split(",") if t]
     record = {"arch": args.arch, "val_towns": towns, "data": str(args.data), "epochs": args.epochs}
     record |= {"fit_args": args.fit_arg, "figures": summary}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "summary.json").write_text(json.dumps(record, indent=1) + "\n")
+
+
+def build_identity(data: Path) -> dict:
+    """What makes two builds the same data: the manifest's build section (seed, frames, towns
+    and their networks, sensors, generator version)."""
+    m = json.loads((data / "_manifest.json").read_text())
+    return m["build"]
+
+
+def _commit() -> str:
+    out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True)
+    return out.stdout.strip()
+
+
+def load_record(path: Path, args) -> dict:
+    """The --record file's seeds (str(seed) -> entry), refused when it was made with another
+    architecture, held-out towns or epochs."""
+    if not path.is_file():
+        return {}
+    doc = json.loads(path.read_text())
+    mine = {"arch": args.arch, "val_towns": args.val_towns, "epochs": args.epochs}
+    theirs = {k: doc.get(k) for k in mine}
+    if theirs != mine:
+        sys.exit(f"--record {path}: made with {theirs}, this run is {mine}")
+    return doc.get("seeds", {})
+
+
+def save_record(path: Path, args, seeds: dict) -> None:
+    doc = {"arch": args.arch, "val_towns": args.val_towns, "epochs": args.epochs}
+    doc |= {
+        "fit_args": args.fit_arg,
+        "seeds": dict(sorted(seeds.items(), key=lambda kv: int(kv[0]))),
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(doc, indent=1) + "\n")
+    os.replace(tmp, path)
+
+
+T95 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306, 9: 2.262}
+"""Student's t, two-sided 95 %, by degrees of freedom."""
+
+
+def paired(a: dict, b: dict) -> tuple[str, dict]:
+    """B - A per SUMMARY figure over the seeds both records hold: per seed, mean, and the 95 %
+    interval of the mean (t with n - 1 degrees of freedom; none for one seed)."""
+    import numpy as np
+
+    seeds = sorted(set(a["seeds"]) & set(b["seeds"]), key=int)
+    lines = [
+        f"{'B - A':<20}" + "".join(f"{f's{s}':>9}" for s in seeds) + "   mean   [95 % interval]"
+    ]
+    out = {}
+    for key in SUMMARY:
+        d = [b["seeds"][s]["figures"].get(key) for s in seeds]
+        d = [x - a["seeds"][s]["figures"][key] for x, s in zip(d, seeds) if x is not None]
+        if len(d) != len(seeds) or not d:
+            continue
+        v = np.asarray(d)
+        half = T95[len(v) - 1] * v.std(ddof=1) / np.sqrt(len(v)) if len(v) > 1 else float("nan")
+        out[key] = {
+            "diff": d,
+            "mean": float(v.mean()),
+            "ci95": [float(v.mean() - half), float(v.mean() + half)],
+        }
+        lines.append(
+            f"{key:<20}" + "".join(f"{x:>9.4f}" for x in d)
+            + f"   {v.mean():.4f} [{v.mean() - half:.4f}, {v.mean() + half:.4f}]"
+        )  # fmt: skip
+    return "\n".join(lines), out
 
 
 def _print_baselines(data: Path, towns: list[str]) -> None:
