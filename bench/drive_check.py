@@ -2,6 +2,8 @@
 
     python bench/drive_check.py --out runs/check                      # the recipe, seed 0
     python bench/drive_check.py --out runs/check --seeds 0,1,2 --routes heldout   # the figure
+    python bench/drive_check.py --out runs/check --seeds '' --privileged-seeds 0 \
+        --privileged-name priv-ps --privileged-arg=--planner-output --privileged-arg=path_speed
 
 Steps (each skipped when its output is already there, so a stopped check resumes):
 1. `datagen build` of --frames in the eight training towns (--recovery: the share of recovery
@@ -10,11 +12,14 @@ Steps (each skipped when its output is already there, so a stopped check resumes
 2. per training seed, `train fit --config tiny --arch A` (--val-towns held out of training), then
    --dagger-rounds rounds of `drive collect` (the model drives, the expert labels; --beta) and a
    fine-tune on the union (`train fit --init`);
+2b. per --privileged-seeds seed, `train fit --arch privileged` (the planner on ground truth,
+   training/privileged.py; --privileged-arg flags, --privileged-name its rows' name) on the
+   same shards;
 3. `drive eval` of the route sets: `dev` (the training towns' short routes, where choices are
    made) and/or `heldout` (boulevard's short routes, and with --long its long ones, measured
    once per choice), for the expert (the ceiling), `expert-plan` (its plan through the model's
-   controller: the controller's ceiling), `constant` (the floor) and each seed's model with the
-   creep and without it.
+   controller: the controller's ceiling), `constant` (the floor), each privileged planner
+   without the creep, and each seed's model with the creep and without it.
 
 Prints DS, RC, IS, infractions per km and the seconds per route the policy stood where the
 expert would have driven on, per policy, then each model's DS as a share of the expert's in the

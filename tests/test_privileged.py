@@ -132,3 +132,13 @@ def test_a_sensor_model_flag_is_one_line(synthetic_shards, tmp_path, capsys, fla
     assert cli.main([*argv, *flag]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "not an option of --arch privileged" in err[0], err
+
+
+def test_stand_to_go_frames_and_their_weights():
+    from training.privileged import go_weights
+
+    t = np.array([0.5, 1.0, 1.5, 2.0])
+    wp = np.stack([np.stack([v * t, 0 * t], 1) for v in (0.0, 2.0, 2.0)]).astype(np.float32)
+    data = {"speed": np.array([0.0, 0.0, 3.0], np.float32), "waypoints": wp}
+    # stands and stays / stands and drives off / drives
+    assert go_weights(data, 5.0, 0.25).tolist() == [0.25, 5.0, 1.0]

@@ -178,6 +178,12 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         help="--arch privileged: weight of the stand -> go frames in the loss (default 1)",
     )
     p.add_argument(
+        "--stay-weight",
+        type=_positive_float,
+        metavar="W",
+        help="--arch privileged: weight of the frames that stand and stay (default 1)",
+    )
+    p.add_argument(
         "--ema",
         type=_fraction,
         metavar="D",
@@ -412,8 +418,8 @@ def _run_fit(args) -> int:
         given = sorted(k for k in {*TRAIN_FLAGS, *MODEL_FLAGS} if getattr(args, k) is not None)
         _check_unfinished_build(Path(args.shards or "."), args.allow_unfinished)
         return run_fit(args, given)
-    if args.go_weight is not None or args.planner_output is not None:
-        raise UserError("--go-weight, --planner-output: options of --arch privileged only")
+    if any(getattr(args, a) is not None for a in ("go_weight", "stay_weight", "planner_output")):
+        raise UserError("--go-weight, --stay-weight, --planner-output: --arch privileged only")
     if args.resume and args.force:
         raise UserError("--resume continues the run in OUT, --force replaces it: give one")
     model_cfg, train_cfg = _configs(args)

@@ -400,6 +400,7 @@ class FitConfig:
     # stand -> go frames (the ego stands, below 0.5 m/s, and the label moves over 1.5 m in 2 s)
     # weigh this much in the loss; 1: as any frame
     go_weight: float = 1.0
+    stay_weight: float = 1.0  # and the frames where it stands and stays (below 1.5 m in 2 s)
     speed_input: bool = True  # PrivilegedConfig.speed
     planner_output: str = "waypoints"  # PrivilegedConfig.output
     threads: int = 0
@@ -409,7 +410,7 @@ class FitConfig:
 
 
 FIT_FLAGS = ("shards", "out", "epochs", "batch_size", "lr", "val_fraction", "val_towns", "seed",
-             "threads", "go_weight", "speed_input", "planner_output")  # fmt: skip
+             "threads", "go_weight", "stay_weight", "speed_input", "planner_output")  # fmt: skip
 """`train fit` flags (argparse names) that set a FitConfig field of the same name."""
 
 CHECKPOINT = "last.pt"
@@ -426,9 +427,14 @@ def stand_to_go(data: dict[str, np.ndarray]) -> np.ndarray:
     return (data["speed"] < 0.5) & (np.linalg.norm(data["waypoints"][:, -1], axis=1) > 1.5)
 
 
-def go_weights(data: dict[str, np.ndarray], go_weight: float) -> np.ndarray:
-    """(N,) float32 loss weights: `go_weight` on stand_to_go frames, 1 elsewhere."""
-    return np.where(stand_to_go(data), go_weight, 1.0).astype(np.float32)
+def go_weights(
+    data: dict[str, np.ndarray], go_weight: float, stay_weight: float = 1.0
+) -> np.ndarray:
+    """(N,) float32 loss weights: `go_weight` on stand_to_go frames, `stay_weight` on frames
+    where the ego stands and stays, 1 elsewhere."""
+    standing = data["speed"] < 0.5
+    w = np.where(standing, stay_weight, 1.0)
+    return np.where(stand_to_go(data), go_weight, w).astype(np.float32)
 
 
 def evaluate(model: PrivilegedPlanner, data: dict[str, np.ndarray], batch: int = 256) -> dict:
@@ -508,7 +514,7 @@ def fit(
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, cfg.lr, total_steps=total, pct_start=0.05)
     rng = np.random.default_rng(cfg.seed)
     tensors = {k: torch.from_numpy(v) for k, v in train_data.items() if k != "expert_reason"}
-    tensors["weight"] = torch.from_numpy(go_weights(train_data, cfg.go_weight))
+    tensors["weight"] = torch.from_numpy(go_weights(train_data, cfg.go_weight, cfg.stay_weight))
     tensors["speed_class"] = torch.from_numpy(pathspeed.speed_class(train_data["waypoints"]))
     (out / METRICS).write_text("")
     for epoch in range(1, cfg.epochs + 1):
