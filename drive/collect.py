@@ -140,6 +140,7 @@ def policy_episode(
             _MODELS.clear()
             _MODELS[key] = ModelPolicy(policy, sensors.to_dict())
         model = _MODELS[key]
+        model.reset()
     config = WorldConfig(
         net_path=net,
         seed=episode.seed,
@@ -176,6 +177,8 @@ def policy_episode(
                     )
                 else:
                     expert_plans += label is not None
+                    if model is not None:
+                        model.observe(frame)  # the stand clock runs whoever plans
                 if waypoints is not None:
                     waypoints = perturb.plan(waypoints)
                     plan = Plan.from_ego(frame.time_s, frame.ego.pose, waypoints)

@@ -144,6 +144,7 @@ def drive_route(
             _MODELS.clear()
             _MODELS[key] = ModelPolicy(spec, sensor_cfg.to_dict())
         model = _MODELS[key]
+        model.reset()
 
     def sensor_stream() -> SensorStream:
         sense = Sensors(static, sensor_cfg, route.weather, episode_rng(route.seed))

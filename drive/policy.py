@@ -104,12 +104,27 @@ class ModelPolicy:
         else:  # reads labels only: any sensors will do
             self.model = model_from_state(state, self.device)
         self.torch = torch
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the route driven so far (call at each route's start): the privileged
+        planner's stand clock (training.ego_history.StandClock)."""
+        from training.ego_history import StandClock
+
+        self.clock = StandClock()
+
+    def observe(self, frame: FrameState) -> float:
+        """Tick the stand clock at a plan (plan_privileged does; call it at a plan someone
+        else makes); the seconds the ego has stood."""
+        return self.clock.tick(float(np.float32(frame.ego.speed_mps)))
 
     def plan_privileged(self, frame: FrameState, label_map) -> np.ndarray:
         """(4, 2) waypoints, ego frame, m, of the privileged planner from the world's ground
-        truth at one instant (`label_map`: the town's, datagen.sensors.scene.StaticScene)."""
+        truth at one instant (`label_map`: the town's, datagen.sensors.scene.StaticScene),
+        one call per plan (its stand clock ticks at each)."""
         torch = self.torch
         x = privileged_inputs(frame, label_map)
+        x["stood"] = np.float32(self.observe(frame))
         batch = {k: torch.from_numpy(np.asarray(v))[None].to(self.device) for k, v in x.items()}
         with torch.no_grad():
             waypoints = self.model.plan(batch)

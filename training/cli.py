@@ -88,6 +88,7 @@ TRAIN_FLAGS = {
     "threads": "threads",
     "init": "init",
 }
+PRIVILEGED_FLAGS = ("planner_output", "go_weight", "stay_weight", "stood_input")
 MODEL_FLAGS = {
     "output_px": "output_px",
     "no_detection": "detection",
@@ -165,24 +166,16 @@ def _add_fit(p: argparse.ArgumentParser) -> None:
         "label (red or stop sign while moving, neither while stopped) (1: off; ours, in neither "
         "architecture)",
     )
-    p.add_argument(
-        "--planner-output",
-        choices=("waypoints", "path_speed"),
-        help="--arch privileged: the paper's GRU waypoints (default) or TransFuser++'s path and "
-        "target-speed classes (training/pathspeed.py)",
-    )
-    p.add_argument(
-        "--go-weight",
-        type=_positive_float,
-        metavar="W",
-        help="--arch privileged: weight of the stand -> go frames in the loss (default 1)",
-    )
-    p.add_argument(
-        "--stay-weight",
-        type=_positive_float,
-        metavar="W",
-        help="--arch privileged: weight of the frames that stand and stay (default 1)",
-    )
+    # --arch privileged only (PRIVILEGED_FLAGS)
+    p.add_argument("--planner-output", choices=("waypoints", "path_speed"), help="--arch "
+                   "privileged: the paper's GRU waypoints (default) or TransFuser++'s path and "
+                   "target-speed classes (training/pathspeed.py)")  # fmt: skip
+    p.add_argument("--go-weight", type=_positive_float, metavar="W", help="--arch privileged: "
+                   "weight of the stand -> go frames in the loss (default 1)")  # fmt: skip
+    p.add_argument("--stay-weight", type=_positive_float, metavar="W", help="--arch privileged: "
+                   "weight of the frames that stand and stay (default 1)")  # fmt: skip
+    p.add_argument("--stood-input", action="store_const", const=True, help="--arch privileged: "
+                   "it also reads how long the ego has stood (training/ego_history.py)")  # fmt: skip
     p.add_argument(
         "--ema",
         type=_fraction,
@@ -418,8 +411,9 @@ def _run_fit(args) -> int:
         given = sorted(k for k in {*TRAIN_FLAGS, *MODEL_FLAGS} if getattr(args, k) is not None)
         _check_unfinished_build(Path(args.shards or "."), args.allow_unfinished)
         return run_fit(args, given)
-    if any(getattr(args, a) is not None for a in ("go_weight", "stay_weight", "planner_output")):
-        raise UserError("--go-weight, --stay-weight, --planner-output: --arch privileged only")
+    if any(getattr(args, a) is not None for a in PRIVILEGED_FLAGS):
+        flags = ", ".join("--" + a.replace("_", "-") for a in PRIVILEGED_FLAGS)
+        raise UserError(f"{flags}: --arch privileged only")
     if args.resume and args.force:
         raise UserError("--resume continues the run in OUT, --force replaces it: give one")
     model_cfg, train_cfg = _configs(args)

@@ -38,7 +38,7 @@ from torch import nn
 
 from schemas import COMMANDS, TRAFFIC_LIGHTS
 from schemas.bev import BEV_SIZE_PX, ego_to_bev_px
-from training import pathspeed
+from training import ego_history, pathspeed
 from training.errors import UserError
 from training.heads import PlanningHead
 
@@ -204,6 +204,7 @@ class PrivilegedConfig:
     speed: bool = True
     n_waypoints: int = 4
     output: str = "waypoints"  # or "path_speed": TF++'s path and speed classes (pathspeed.py)
+    stood: bool = False  # also reads how long the ego has stood (ego_history.StandClock)
     arch: str = ARCH
 
     def to_dict(self) -> dict:
@@ -236,7 +237,8 @@ class PrivilegedPlanner(nn.Module):
             _conv(2 * w, 4 * w, 2),  # 8
             _conv(4 * w, 4 * w, 2),  # 4
         )
-        self.embed = nn.Sequential(nn.Linear(len(SCALARS), 64), nn.ReLU(inplace=True))
+        n_scalars = len(SCALARS) + cfg.stood
+        self.embed = nn.Sequential(nn.Linear(n_scalars, 64), nn.ReLU(inplace=True))
         self.join = nn.Sequential(nn.Linear(4 * w * 16 + 64, cfg.hidden), nn.ReLU(inplace=True))
         if cfg.output not in OUTPUTS:
             raise ValueError(f"output {cfg.output!r}: expected one of {', '.join(OUTPUTS)}")
@@ -247,13 +249,17 @@ class PrivilegedPlanner(nn.Module):
 
     def forward(
         self, grid: torch.Tensor, scalar: torch.Tensor, target_point: torch.Tensor,
-        speed: torch.Tensor,
+        speed: torch.Tensor, stood: torch.Tensor | None = None,
     ) -> dict[str, torch.Tensor]:  # fmt: skip
         """grid (B, 8, 64, 64) uint8 or float, scalar (B, S), target_point (B, 2) m, speed (B,)
-        m/s -> the head's outputs: {"waypoints": (B, 4, 2) m, ego frame} or pathspeed's."""
+        m/s, stood (B,) s (read with cfg.stood) -> the head's outputs: {"waypoints": (B, 4, 2)
+        m, ego frame} or pathspeed's."""
         x = self.encoder(grid.float()).flatten(1)
         if not self.cfg.speed:
             scalar = torch.cat([torch.zeros_like(scalar[:, :1]), scalar[:, 1:]], dim=1)
+        if self.cfg.stood:
+            cap = ego_history.STOOD_CAP_S
+            scalar = torch.cat([scalar, stood.float().clamp(0, cap)[:, None] / cap], dim=1)
         f = self.join(torch.cat([x, self.embed(scalar)], dim=1))
         if self.cfg.output == "path_speed":
             return self.head(f, target_point)
@@ -261,7 +267,8 @@ class PrivilegedPlanner(nn.Module):
 
     def outputs(self, sample: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """The head's outputs for a batch of `inputs` dicts."""
-        return self(sample["grid"], sample["scalars"], sample["target_point"], sample["speed"])
+        keys = ("grid", "scalars", "target_point", "speed")
+        return self(*(sample[k] for k in keys), sample.get("stood"))
 
     def plan(self, sample: dict[str, torch.Tensor]) -> torch.Tensor:
         """Waypoints (B, 4, 2) from a batch of `inputs` dicts (path_speed: turned into them)."""
@@ -294,48 +301,21 @@ def _null(v) -> float | None:
 
 def read_samples(index) -> dict[str, np.ndarray]:
     """The planner's samples of the frames of `index` (training.data.scan's rows), stacked:
-    grid (N, 8, 64, 64) uint8, scalars, target_point, speed, waypoints (N, 4, 2) float32, and
-    expert_reason (N,) str; in `index`'s order."""
+    grid (N, 8, 64, 64) uint8, scalars, target_point, speed, waypoints (N, 4, 2) float32,
+    the path labels (pathspeed), stood (N,) s (ego_history.StandClock) and expert_reason (N,)
+    str; in `index`'s order."""
     parts: dict[int, dict] = {}
     for file, group in index.groupby("path", sort=False):
         table = pq.read_table(file, columns=list(COLUMNS))
         rows = _file_rows(file, group)
-        paths, masks = path_labels(file)
+        paths, masks = ego_history.path_labels(file)
+        stood = ego_history.stood_labels(file)
         for k, x in zip(group.index, table_samples(table.take(rows))):
             parts[k] = x
         for k, r in zip(group.index, rows):
-            parts[k] |= {"path": paths[r], "path_mask": masks[r]}
+            parts[k] |= {"path": paths[r], "path_mask": masks[r], "stood": stood[r]}
     rows = [parts[i] for i in index.index]
     return {k: np.stack([r[k] for r in rows]) for k in rows[0]} if rows else {}
-
-
-def path_labels(file: str) -> tuple[np.ndarray, np.ndarray]:
-    """Per row of a shard file, pathspeed.future_path of its episode's later frames (the ego's
-    own positions, in the frame the row's labels are in: the sensor rig's, `rig_shift_m` to
-    the ego's left and turned `rig_yaw_rad`, for a recovery frame) -> (N, P, 2), (N, P)."""
-    names = set(pq.read_schema(file).names)
-    cols = ["episode_id", "frame", "ego_x", "ego_y", "ego_yaw"]
-    cols += [c for c in ("rig_shift_m", "rig_yaw_rad") if c in names]
-    t = pq.read_table(file, columns=cols).to_pandas()
-    n = len(t)
-    paths = np.zeros((n, pathspeed.PATH_POINTS, 2), np.float32)
-    masks = np.zeros((n, pathspeed.PATH_POINTS), bool)
-    shift = t["rig_shift_m"].to_numpy(np.float64) if "rig_shift_m" in t else np.zeros(n)
-    turn = t["rig_yaw_rad"].to_numpy(np.float64) if "rig_yaw_rad" in t else np.zeros(n)
-    for _, ep in t.groupby("episode_id", sort=False):
-        ep = ep.sort_values("frame")
-        rows = ep.index.to_numpy()
-        xy = ep[["ego_x", "ego_y"]].to_numpy(np.float64)
-        yaw = ep["ego_yaw"].to_numpy(np.float64)
-        for k, r in enumerate(rows):
-            c, s_ = math.cos(yaw[k]), math.sin(yaw[k])
-            origin = xy[k] + shift[r] * np.array([-s_, c])
-            a = yaw[k] + turn[r]
-            d = xy[k + 1 :] - origin
-            ego = np.stack([d[:, 0] * math.cos(a) + d[:, 1] * math.sin(a),
-                            -d[:, 0] * math.sin(a) + d[:, 1] * math.cos(a)], 1)  # fmt: skip
-            paths[r], masks[r] = pathspeed.future_path(ego)
-    return paths, masks
 
 
 def _file_rows(file: str, group) -> np.ndarray:
@@ -403,6 +383,7 @@ class FitConfig:
     stay_weight: float = 1.0  # and the frames where it stands and stays (below 1.5 m in 2 s)
     speed_input: bool = True  # PrivilegedConfig.speed
     planner_output: str = "waypoints"  # PrivilegedConfig.output
+    stood_input: bool = False  # PrivilegedConfig.stood
     threads: int = 0
 
     def to_dict(self) -> dict:
@@ -410,7 +391,8 @@ class FitConfig:
 
 
 FIT_FLAGS = ("shards", "out", "epochs", "batch_size", "lr", "val_fraction", "val_towns", "seed",
-             "threads", "go_weight", "stay_weight", "speed_input", "planner_output")  # fmt: skip
+             "threads", "go_weight", "stay_weight", "speed_input", "planner_output",
+             "stood_input")  # fmt: skip
 """`train fit` flags (argparse names) that set a FitConfig field of the same name."""
 
 CHECKPOINT = "last.pt"
@@ -501,7 +483,9 @@ def fit(
 
         sensor_config = shards_sensors(index)
     torch.manual_seed(cfg.seed)
-    model = PrivilegedPlanner(replace(model_cfg, speed=cfg.speed_input, output=cfg.planner_output))
+    model = PrivilegedPlanner(
+        replace(model_cfg, speed=cfg.speed_input, output=cfg.planner_output, stood=cfg.stood_input)
+    )
     decay = [p for p in model.parameters() if p.ndim >= 2]
     rest = [p for p in model.parameters() if p.ndim < 2]
     opt = torch.optim.AdamW(
