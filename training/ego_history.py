@@ -14,7 +14,7 @@ import pyarrow.parquet as pq
 from schemas import FRAME_PERIOD_S
 from training import pathspeed
 
-STAND_MPS = 0.5  # below this the ego stands (training.privileged.stand_to_go's threshold)
+STAND_MPS = 0.5  # below this the ego stands (here and in training.privileged's weights)
 STOOD_CAP_S = 20.0  # the input saturates here: longer than most red lights' remaining red
 
 
@@ -67,9 +67,10 @@ def path_labels(file: str) -> tuple[np.ndarray, np.ndarray]:
     masks = np.zeros((n, pathspeed.PATH_POINTS), bool)
     shift = t["rig_shift_m"].to_numpy(np.float64) if "rig_shift_m" in t else np.zeros(n)
     turn = t["rig_yaw_rad"].to_numpy(np.float64) if "rig_yaw_rad" in t else np.zeros(n)
+    xy_all = t[["ego_x", "ego_y"]].to_numpy(np.float64)
+    yaw_all = t["ego_yaw"].to_numpy(np.float64)
     for rows in groups:
-        xy = t[["ego_x", "ego_y"]].to_numpy(np.float64)[rows]
-        yaw = t["ego_yaw"].to_numpy(np.float64)[rows]
+        xy, yaw = xy_all[rows], yaw_all[rows]
         for k, r in enumerate(rows):
             c, s_ = math.cos(yaw[k]), math.sin(yaw[k])
             origin = xy[k] + shift[r] * np.array([-s_, c])

@@ -406,7 +406,8 @@ def _ade(pred: torch.Tensor, wp: torch.Tensor) -> torch.Tensor:
 def stand_to_go(data: dict[str, np.ndarray]) -> np.ndarray:
     """(N,) bool: frames where the ego stands (below 0.5 m/s) and its label drives off (over
     1.5 m in the 2 s)."""
-    return (data["speed"] < 0.5) & (np.linalg.norm(data["waypoints"][:, -1], axis=1) > 1.5)
+    standing = data["speed"] < ego_history.STAND_MPS
+    return standing & (np.linalg.norm(data["waypoints"][:, -1], axis=1) > 1.5)
 
 
 def go_weights(
@@ -414,8 +415,7 @@ def go_weights(
 ) -> np.ndarray:
     """(N,) float32 loss weights: `go_weight` on stand_to_go frames, `stay_weight` on frames
     where the ego stands and stays, 1 elsewhere."""
-    standing = data["speed"] < 0.5
-    w = np.where(standing, stay_weight, 1.0)
+    w = np.where(data["speed"] < ego_history.STAND_MPS, stay_weight, 1.0)
     return np.where(stand_to_go(data), go_weight, w).astype(np.float32)
 
 
